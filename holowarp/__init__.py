@@ -1,0 +1,29 @@
+"""holowarp: HoloTetSphere reconstruction and deformable-body simulation in NVIDIA Warp.
+
+Public entry points (one canonical import path each):
+
+- :class:`holowarp.TetMesh`: the tetrahedral mesh core (orientation, boundary, adjacency,
+  components, manifoldness, quality).
+- :func:`holowarp.read_tetmesh`, :func:`holowarp.write_tetmesh`,
+  :func:`holowarp.write_surface`: mesh I/O (``.vtu``, ``.msh``, ``.npz``; ``.obj``/``.ply``).
+- :func:`holowarp.write_usd`: USD export (``UsdGeom.TetMesh`` + surface ``Mesh`` + physics
+  material).
+
+Conventions are those of ``method.md`` §1: SI units, Z up, OpenCV cameras, tets ordered so
+that ``det[b-a, c-a, d-a] / 6 > 0``.
+"""
+
+from holowarp.tetmesh import TetMesh
+from holowarp.mesh_io import MeshIOError, read_tetmesh, write_surface, write_tetmesh
+from holowarp.usd import write_usd
+
+__all__ = [
+    "MeshIOError",
+    "TetMesh",
+    "read_tetmesh",
+    "write_surface",
+    "write_tetmesh",
+    "write_usd",
+]
+
+__version__ = "0.1.0"

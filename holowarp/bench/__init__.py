@@ -1,0 +1,41 @@
+"""Benchmarks: ``python -m holowarp.bench NAME [--json] [--device cpu|cuda]``.
+
+Each benchmark is a module ``holowarp.bench.NAME`` with a ``main(argv)`` that prints JSON
+with median times, the ratio to the reference the issue names, and peak memory. Speed lives
+here, never in timed tests.
+
+- ``tetmesh``: the TetMesh core at 1M tets.
+- ``raster``: the surfel rasteriser against the dense torch reference.
+- ``mesh``: the triangle rasteriser and tet energies.
+- ``sim``: the simulator against Newton ``SolverVBD``.
+- ``eval``: metrics on a 100k-point pair and ground-truth rendering of 120 views.
+"""
+
+from __future__ import annotations
+
+import resource
+import statistics
+import sys
+import time
+
+__all__ = ["BENCHMARKS", "median_ms", "peak_rss_mb"]
+
+BENCHMARKS = ("tetmesh", "raster", "mesh", "sim", "eval")
+
+
+def median_ms(fn, *, repeat: int = 5, warmup: int = 1) -> float:
+    """Median wall time of ``fn()`` in milliseconds over ``repeat`` runs after ``warmup``."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process in MiB (Linux reports KiB, macOS bytes)."""
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / (1024.0 * 1024.0) if sys.platform == "darwin" else r / 1024.0

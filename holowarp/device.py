@@ -1,0 +1,71 @@
+"""Device selection shared by every command: one code path, ``--device cpu|cuda``.
+
+Warp and torch name devices the same way (``"cpu"``, ``"cuda"``, ``"cuda:0"``), so a single
+string selects both. Asking for CUDA on a machine without a GPU fails early with a clear
+message instead of deep inside a kernel launch.
+"""
+
+from __future__ import annotations
+
+__all__ = ["DeviceError", "resolve_device", "torch_device", "init_warp"]
+
+
+class DeviceError(RuntimeError):
+    """The requested compute device is not available."""
+
+
+_warp_ready = False
+
+
+def init_warp():
+    """Initialise Warp once, quietly, and return the ``warp`` module."""
+    global _warp_ready
+    import warp as wp
+
+    if not _warp_ready:
+        wp.config.quiet = True
+        wp.init()
+        _warp_ready = True
+    return wp
+
+
+def resolve_device(device: str | None = "cpu") -> str:
+    """Validate a device string and return the canonical Warp/torch name.
+
+    Args:
+        device: ``"cpu"``, ``"cuda"`` or ``"cuda:N"``. ``None`` means ``"cpu"``.
+
+    Returns:
+        ``"cpu"`` or ``"cuda:N"``.
+
+    Raises:
+        DeviceError: the name is unknown, or CUDA was asked for and Warp sees no GPU.
+    """
+    device = "cpu" if device is None else str(device).strip().lower()
+    if device == "cpu":
+        return "cpu"
+    if device == "cuda" or device.startswith("cuda:"):
+        wp = init_warp()
+        if not wp.is_cuda_available():
+            raise DeviceError(
+                f"--device {device}: no CUDA GPU is visible to Warp on this machine; "
+                "use --device cpu"
+            )
+        idx = 0 if device == "cuda" else device.split(":", 1)[1]
+        try:
+            idx = int(idx)
+        except ValueError as e:
+            raise DeviceError(f"--device {device}: expected cuda or cuda:N") from e
+        if idx >= wp.get_cuda_device_count():
+            raise DeviceError(
+                f"--device {device}: only {wp.get_cuda_device_count()} CUDA device(s) present"
+            )
+        return f"cuda:{idx}"
+    raise DeviceError(f"--device {device!r}: expected 'cpu', 'cuda' or 'cuda:N'")
+
+
+def torch_device(device: str | None = "cpu"):
+    """Return the ``torch.device`` for a (validated) holowarp device string."""
+    import torch
+
+    return torch.device(resolve_device(device))

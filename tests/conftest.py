@@ -1,0 +1,38 @@
+"""Shared fixtures: paths to the shared test meshes, a seeded RNG, CPU-only Warp."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# Tests run Warp on the CPU backend; silence its banner.
+os.environ.setdefault("WARP_QUIET", "1")
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_MESHES = REPO.parent / "shared" / "data" / "meshes"
+ASSETS = REPO / "holowarp" / "assets"
+
+
+@pytest.fixture
+def rng(request):
+    """A fresh, reproducible-per-test random generator (seeded from the test's name)."""
+    seed = abs(hash(request.node.nodeid)) % (2**32)
+    return np.random.default_rng(seed)
+
+
+def shared_mesh(name: str) -> Path:
+    """Path of a shared test object (``spot``, ``bob``, ``fandisk``); skip if absent."""
+    files = {
+        "spot": SHARED_MESHES / "spot" / "spot.obj",
+        "bob": SHARED_MESHES / "bob" / "bob_tri.obj",
+        "fandisk": SHARED_MESHES / "fandisk" / "fandisk.obj",
+    }
+    p = files[name]
+    if not p.is_file() and name == "bob":
+        p = ASSETS / "bob" / "bob_tri.obj"
+    if not p.is_file():
+        pytest.skip(f"test mesh {p} is not available")
+    return p
