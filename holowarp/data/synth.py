@@ -1,0 +1,296 @@
+"""Synthetic ground-truth views of a mesh in the NeRF-synthetic layout (method.md §2).
+
+:func:`synthesize` turns one OBJ into a dataset folder::
+
+    DIR/transforms_train.json   camera_angle_x, frames[{file_path, transform_matrix, ...}]
+    DIR/transforms_test.json
+    DIR/train/r_<view>.png          RGBA, 8 bit, straight alpha = coverage (the mask)
+    DIR/train/r_<view>_normal.png   world-space normal encoded (n + 1) / 2, alpha = mask
+    DIR/train/r_<view>_depth.png    camera z-depth, 16 bit, depth = value * depth_png_scale
+    DIR/train/r_<view>_geom.npz     exact float32 ``normal`` (H, W, 3) and ``depth`` (H, W)
+    DIR/test/...                    the same for the test views
+    DIR/gt.obj                      welded, Z-up, normalised ground-truth surface
+
+Protocol: ``views`` cameras on a Fibonacci sphere (``holowarp.camera.fibonacci_sphere``)
+looking at the origin with Z up, horizontal fov 39.3 degrees, square images; view ``i`` is a
+test view when ``i % test_every == 0`` (0, 10, ..., 110 for 120 views). ``<view>`` in the
+file names is the ORIGINAL view index, and every frame also carries ``view_index``, so the
+split and the ordering are recoverable; ``holowarp.view_order`` lists them.
+
+Frames. The OBJ is first rotated to Z up (``up_axis="y"``: (x, y, z) -> (x, -z, y), the
+usual OBJ convention of spot and bob) and then translated and uniformly scaled so its
+bounding box is centred at the origin with largest side 1 -- the evaluation frame of
+method.md §1. The dataset's world IS therefore the evaluation frame, and ``gt.obj`` lives in
+it. The transform ``p_world = scale * (R @ p_obj) + translation`` is recorded under the
+extra key ``"holowarp"`` of both transforms files (NeRF tools ignore unknown keys).
+
+Cameras sit at distance ``r / sin(fov / 2) * margin`` from the origin, ``r`` the radius of
+the object's bounding sphere about the origin, so the object fills most of the frame.
+Shading: texture from the OBJ's UVs and ``map_Kd`` image when it has them, else vertex
+colours, else a fixed albedo; fixed world lights (:class:`holowarp.render_gt.Lighting`);
+transparent background; 2 x 2 stratified supersampling by default so masks have soft,
+antialiased edges (alpha = coverage).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from holowarp.camera import FOV_DEG, fibonacci_sphere, intrinsics_from_fov, look_at, viewmat_to_opengl_c2w
+from holowarp.fileio import atomic_path, atomic_save_npz, atomic_write_json
+
+__all__ = ["SynthError", "synthesize", "up_axis_rotation", "normalisation", "protocol_cameras", "TEST_EVERY", "NUM_VIEWS"]
+
+#: Views per object and test-view stride of the paper's protocol (method.md §2).
+NUM_VIEWS = 120
+TEST_EVERY = 10
+#: Camera distance margin over the tight bounding-sphere distance ("fills most of the frame").
+DISTANCE_MARGIN = 1.1
+#: Version of the layout written under the "holowarp" key.
+LAYOUT_VERSION = 1
+
+
+class SynthError(ValueError):
+    """Bad arguments to :func:`synthesize`; the message names the argument or file."""
+
+
+def up_axis_rotation(up_axis: str) -> np.ndarray:
+    """Rotation (3, 3) taking a model with the given up axis to Z up.
+
+    ``"y"``: (x, y, z) -> (x, -z, y), a proper rotation of +90 degrees about x;
+    ``"z"``: identity.
+    """
+    up = str(up_axis).lower()
+    if up == "y":
+        return np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    if up == "z":
+        return np.eye(3)
+    raise SynthError(f"--up-axis {up_axis!r}: expected 'y' or 'z'")
+
+
+def normalisation(points: np.ndarray):
+    """``(scale, translation)`` mapping ``points`` (P, 3) to the evaluation frame of method.md
+    §1: bounding box centred at the origin, largest side 1 (``p' = scale * p + translation``)."""
+    points = np.asarray(points, dtype=np.float64)
+    lo, hi = points.min(0), points.max(0)
+    ext = float((hi - lo).max())
+    if not np.isfinite(ext) or ext <= 0:
+        raise SynthError("mesh has a degenerate (zero-size) bounding box")
+    scale = 1.0 / ext
+    return scale, -0.5 * (lo + hi) * scale
+
+
+def protocol_cameras(num_views: int, distance: float, res: int, *, fov_deg: float = FOV_DEG):
+    """Cameras of the synthetic protocol: ``(viewmats (N, 4, 4), K (3, 3))``, OpenCV, Z up."""
+    dirs = fibonacci_sphere(num_views)
+    K = intrinsics_from_fov(math.radians(fov_deg), res, res)
+    viewmats = np.stack([look_at(d * distance, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0)) for d in dirs])
+    return viewmats, K
+
+
+def _save_png(path: Path, arr: np.ndarray):
+    """PNG of a uint8 (H, W[, C]) or uint16 (H, W) array, written atomically."""
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(arr).save(tmp, format="PNG")
+
+
+def _to_u8(x: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(np.asarray(x) * 255.0), 0, 255).astype(np.uint8)
+
+
+def _view_files(out: Path, split: str, i: int) -> dict:
+    base = out / split / f"r_{i}"
+    return {
+        "rgba": base.with_name(base.name + ".png"),
+        "normal": base.with_name(base.name + "_normal.png"),
+        "depth": base.with_name(base.name + "_depth.png"),
+        "geom": base.with_name(base.name + "_geom.npz"),
+    }
+
+
+def synthesize(
+    mesh_path: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    *,
+    views: int = NUM_VIEWS,
+    res: int = 512,
+    device: str = "cpu",
+    up_axis: str = "y",
+    test_every: int = TEST_EVERY,
+    fov_deg: float = FOV_DEG,
+    supersample: int = 2,
+    margin: float = DISTANCE_MARGIN,
+    albedo=(0.72, 0.72, 0.72),
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> dict:
+    """Render the ground-truth views of ``mesh_path`` into ``out_dir`` (see module docstring).
+
+    Args:
+        mesh_path: an ``.obj`` (textured or not).
+        out_dir: dataset folder to write.
+        views: number of Fibonacci-sphere views.
+        res: image width = height in pixels.
+        device: ``"cpu"`` or ``"cuda[:N]"``.
+        up_axis: the model's up axis, ``"y"`` (OBJ convention) or ``"z"``.
+        test_every: view ``i`` is a test view when ``i % test_every == 0``.
+        supersample: stratified rays per pixel along each axis (antialiasing).
+        margin: camera distance factor over the tight bounding-sphere distance.
+        resume: keep views whose files already exist (an interrupted run continues).
+        overwrite: allow writing into a folder that already holds a dataset.
+        progress: show a tqdm bar.
+
+    Returns:
+        A summary dict (views, train/test counts, camera distance, transform, seconds).
+
+    Raises:
+        SynthError: bad argument, unreadable mesh, or an existing dataset in ``out_dir``
+            without ``resume``/``overwrite``.
+    """
+    import time
+
+    from tqdm import tqdm
+
+    from holowarp.data.obj import ObjError, load_obj, write_obj
+    from holowarp.render_gt import GTRenderer
+
+    t0 = time.perf_counter()
+    mesh_path, out = Path(mesh_path), Path(out_dir)
+    if views < 1:
+        raise SynthError(f"--views must be >= 1, got {views}")
+    if res < 8:
+        raise SynthError(f"--res must be >= 8 pixels, got {res}")
+    if test_every < 1:
+        raise SynthError(f"--test-every must be >= 1, got {test_every}")
+    if supersample < 1:
+        raise SynthError(f"--supersample must be >= 1, got {supersample}")
+    if not (0.0 < fov_deg < 180.0):
+        raise SynthError(f"fov must lie in (0, 180) degrees, got {fov_deg}")
+    if (out / "transforms_train.json").exists() and not (resume or overwrite):
+        raise SynthError(f"{out} already holds a dataset; pass --resume to continue it or --overwrite to replace it")
+    try:
+        obj = load_obj(mesh_path)
+    except ObjError as e:
+        raise SynthError(str(e)) from e
+    obj = obj.welded()
+    R = up_axis_rotation(up_axis)
+    rotated = obj.positions @ R.T
+    scale, translation = normalisation(rotated)
+    verts = rotated * scale + translation
+    obj.positions = verts
+
+    radius = float(np.linalg.norm(verts, axis=1).max())
+    half = math.radians(fov_deg) / 2.0
+    distance = radius / math.sin(half) * margin
+    viewmats, K = protocol_cameras(views, distance, res, fov_deg=fov_deg)
+    renderer = GTRenderer.from_obj(obj, albedo=albedo, supersample=supersample, device=device)
+    depth_scale = (distance + radius) * 1.5 / 65535.0
+
+    split_of = ["test" if i % test_every == 0 else "train" for i in range(views)]
+    todo = []
+    for i in range(views):
+        files = _view_files(out, split_of[i], i)
+        if resume and all(p.is_file() for p in files.values()):
+            continue
+        todo.append(i)
+    for s in ("train", "test"):
+        (out / s).mkdir(parents=True, exist_ok=True)
+
+    shading = "texture" if obj.textured else ("vertex_colors" if obj.vertex_colors is not None else "albedo")
+    bar = tqdm(total=views, initial=views - len(todo), desc=f"synth {mesh_path.stem}", unit="view", disable=not progress)
+    for j, r in renderer.render_views(viewmats[todo], [K] * len(todo), res, res):
+        i = todo[j]
+        files = _view_files(out, split_of[i], i)
+        rgba, mask = r["rgba"], r["mask"]
+        _save_png(files["rgba"], _to_u8(rgba))
+        n = r["normal"]
+        n_rgba = np.concatenate([(n + 1.0) * 0.5 * (mask[..., None] > 0), mask[..., None]], axis=-1)
+        _save_png(files["normal"], _to_u8(n_rgba))
+        d16 = np.clip(np.rint(r["depth"] / depth_scale), 0, 65535).astype(np.uint16)
+        _save_png(files["depth"], d16)
+        atomic_save_npz(files["geom"], normal=n.astype(np.float32), depth=r["depth"].astype(np.float32))
+        bar.update(1)
+    bar.close()
+
+    fov_x = math.radians(fov_deg)
+    meta = {
+        "version": LAYOUT_VERSION,
+        "source": str(mesh_path.resolve()),
+        "up_axis": str(up_axis).lower(),
+        "transform": {
+            "doc": "p_world = scale * (rotation @ p_obj) + translation",
+            "rotation": R.tolist(),
+            "scale": scale,
+            "translation": translation.tolist(),
+        },
+        "frame": "evaluation frame (method.md 1): GT bbox centred at the origin, largest side 1, Z up",
+        "num_views": views,
+        "test_every": test_every,
+        "resolution": res,
+        "supersample": supersample,
+        "camera_distance": distance,
+        "bounding_radius": radius,
+        "depth": "camera z-depth in world units; *_depth.png value * depth_png_scale, exact in *_geom.npz",
+        "depth_png_scale": depth_scale,
+        "normal": "world-space unit normal; *_normal.png stores (n + 1) / 2, exact in *_geom.npz",
+        "shading": shading,
+        "lighting": {
+            "ambient": list(renderer.lighting.ambient),
+            "directions": [list(d) for d in renderer.lighting.directions],
+            "colors": [list(c) for c in renderer.lighting.colors],
+        },
+        "gt_mesh": "gt.obj",
+        "num_gt_vertices": int(len(verts)),
+        "num_gt_faces": int(len(obj.faces)),
+    }
+    for split in ("train", "test"):
+        idx = [i for i in range(views) if split_of[i] == split]
+        frames = []
+        for i in idx:
+            files = _view_files(out, split, i)
+            frames.append(
+                {
+                    "file_path": f"./{split}/r_{i}",
+                    "transform_matrix": viewmat_to_opengl_c2w(viewmats[i]).tolist(),
+                    "view_index": i,
+                    "normal_path": f"./{split}/{files['normal'].name}",
+                    "depth_path": f"./{split}/{files['depth'].name}",
+                    "geometry_path": f"./{split}/{files['geom'].name}",
+                }
+            )
+        doc = {
+            "camera_angle_x": fov_x,
+            "w": res,
+            "h": res,
+            "fl_x": float(K[0, 0]),
+            "fl_y": float(K[1, 1]),
+            "cx": float(K[0, 2]),
+            "cy": float(K[1, 2]),
+            "frames": frames,
+            "holowarp": dict(meta, split=split, view_order=idx),
+        }
+        atomic_write_json(out / f"transforms_{split}.json", doc)
+    write_obj(
+        out / "gt.obj",
+        verts,
+        obj.faces,
+        header=f"holowarp ground truth from {mesh_path.name}: welded, Z up, bbox centred at origin, largest side 1",
+    )
+    return {
+        "out": str(out),
+        "views": views,
+        "train": sum(s == "train" for s in split_of),
+        "test": sum(s == "test" for s in split_of),
+        "rendered": len(todo),
+        "resolution": res,
+        "camera_distance": distance,
+        "shading": shading,
+        "seconds": time.perf_counter() - t0,
+    }

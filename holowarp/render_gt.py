@@ -1,0 +1,318 @@
+"""Ground-truth renderer: Warp BVH ray casting of a triangle mesh (method.md §2).
+
+:class:`GTRenderer` renders, for one OpenCV camera (``viewmat`` world-to-camera, ``K``),
+
+- ``rgba`` (H, W, 4) float32: straight RGB shaded under fixed world lights (view
+  independent, Lambertian, no shadows) and alpha = pixel coverage,
+- ``normal`` (H, W, 3) float32: world-space unit normal (0 on background),
+- ``depth`` (H, W) float32: camera z-depth in world units (0 on background),
+- ``mask`` (H, W) float32: same as alpha,
+- ``face`` (H, W) int32: the nearest face hit in the pixel, -1 on background.
+
+Antialiasing is stratified ``supersample x supersample`` rays per pixel (alpha is then the
+fraction of rays that hit, so silhouettes are soft); ``supersample=1`` casts exactly one ray
+through each pixel centre, which the analytic tests use. The albedo is a texture (bilinear,
+from OBJ UVs), per-vertex colours or one fixed colour. Normals are per-corner normals
+smoothed across edges whose dihedral angle is below ``crease_angle_deg`` (so sharp CAD edges
+stay sharp) or, with ``smooth_normals=False``, flat face normals.
+
+The same code runs on CPU and CUDA (``device``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from holowarp.device import init_warp, resolve_device
+
+__all__ = ["GTRenderer", "Lighting", "corner_normals"]
+
+
+def _unit(v):
+    v = np.asarray(v, dtype=np.float64)
+    return tuple(float(x) for x in v / np.linalg.norm(v))
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """Fixed world-space lighting: ambient plus directional lights (no shadows).
+
+    ``directions`` point from the surface towards each light (Z up): a key light from
+    above-front, a fill from the side and a weak light from below so undersides are not
+    flat ambient.
+    """
+
+    ambient: tuple = (0.30, 0.30, 0.30)
+    directions: tuple = field(
+        default_factory=lambda: (_unit((0.35, -0.45, 0.82)), _unit((-0.70, 0.55, 0.15)), _unit((0.1, 0.3, -1.0)))
+    )
+    colors: tuple = ((0.60, 0.60, 0.60), (0.30, 0.30, 0.30), (0.15, 0.15, 0.15))
+
+    def __post_init__(self):
+        if len(self.directions) != len(self.colors):
+            raise ValueError("Lighting: directions and colors must have the same length")
+
+
+def corner_normals(vertices: np.ndarray, faces: np.ndarray, *, crease_angle_deg: float = 60.0) -> np.ndarray:
+    """Angle-weighted per-corner normals that are smooth except across creases.
+
+    The normal at corner ``(f, k)`` averages (weighted by the corner angle) the normals of
+    every face around that vertex whose normal is within ``crease_angle_deg`` of face ``f``'s.
+
+    Args:
+        vertices: (V, 3) positions.
+        faces: (F, 3) vertex indices, counter-clockwise = outward.
+
+    Returns:
+        (F, 3, 3) float32 unit normals (zero for corners of degenerate faces).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    p = v[f]  # [F, 3, 3]
+    fn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    ln = np.linalg.norm(fn, axis=1, keepdims=True)
+    fn = np.where(ln > 0, fn / np.maximum(ln, 1e-300), 0.0)
+    # Interior angle at each corner.
+    e1 = p[:, [1, 2, 0]] - p
+    e2 = p[:, [2, 0, 1]] - p
+    cosang = np.einsum("fki,fki->fk", e1, e2) / np.maximum(
+        np.linalg.norm(e1, axis=2) * np.linalg.norm(e2, axis=2), 1e-300
+    )
+    ang = np.arccos(np.clip(cosang, -1.0, 1.0))  # [F, 3]
+    cv = f.ravel()  # vertex of each corner
+    cf = np.repeat(np.arange(len(f)), 3)  # face of each corner
+    order = np.argsort(cv, kind="stable")
+    counts = np.bincount(cv, minlength=len(v))
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    # Pair every corner with every corner at the same vertex (sum of valence^2 pairs).
+    val = counts[cv]
+    a = np.repeat(np.arange(len(cv)), val)
+    offs = np.arange(len(a)) - np.repeat(np.cumsum(val) - val, val)
+    b = order[starts[cv[a]] + offs]
+    cos_lim = math.cos(math.radians(crease_angle_deg))
+    keep = np.einsum("ij,ij->i", fn[cf[a]], fn[cf[b]]) >= cos_lim
+    a, b = a[keep], b[keep]
+    acc = np.zeros((len(cv), 3))
+    np.add.at(acc, a, fn[cf[b]] * ang.ravel()[b][:, None])
+    nrm = np.linalg.norm(acc, axis=1, keepdims=True)
+    acc = np.where(nrm > 1e-12, acc / np.maximum(nrm, 1e-300), np.repeat(fn, 3, axis=0))
+    return acc.reshape(-1, 3, 3).astype(np.float32)
+
+
+class GTRenderer:
+    """Ray-casting renderer of one triangle mesh (see the module docstring for outputs).
+
+    Args:
+        vertices: (V, 3) float positions (world units, Z up).
+        faces: (F, 3) int vertex indices, counter-clockwise seen from outside.
+        uvs: optional (T, 2) texture coordinates (OBJ convention, v up).
+        face_uvs: optional (F, 3) indices into ``uvs``.
+        texture: optional (TH, TW, 3) float RGB in [0, 1], row 0 = top.
+        vertex_colors: optional (V, 3) RGB in [0, 1]; used when there is no texture.
+        albedo: RGB used when there is neither texture nor vertex colours.
+        smooth_normals: interpolate crease-aware corner normals (else flat face normals).
+        crease_angle_deg: dihedral angle above which an edge stays sharp.
+        lighting: :class:`Lighting`; default key + fill + under light.
+        supersample: rays per pixel along each axis (1 = one ray through the pixel centre).
+        device: ``"cpu"`` or ``"cuda[:N]"``.
+    """
+
+    def __init__(
+        self,
+        vertices,
+        faces,
+        *,
+        uvs=None,
+        face_uvs=None,
+        texture=None,
+        vertex_colors=None,
+        albedo=(0.72, 0.72, 0.72),
+        smooth_normals: bool = True,
+        crease_angle_deg: float = 60.0,
+        lighting: Lighting | None = None,
+        supersample: int = 1,
+        device: str = "cpu",
+    ):
+        wp = init_warp()
+        from holowarp.kernels import raycast as rk
+
+        self._wp, self._rk = wp, rk
+        self.device = resolve_device(device)
+        v = np.ascontiguousarray(vertices, dtype=np.float32)
+        f = np.ascontiguousarray(faces, dtype=np.int32)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+            raise ValueError(f"GTRenderer: vertices must be (V, 3) with V > 0, got {v.shape}")
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+            raise ValueError(f"GTRenderer: faces must be (F, 3) with F > 0, got {f.shape}")
+        if f.min() < 0 or f.max() >= len(v):
+            raise ValueError(f"GTRenderer: face indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]")
+        if not np.isfinite(v).all():
+            raise ValueError("GTRenderer: vertices contain NaN or infinity")
+        if int(supersample) < 1:
+            raise ValueError(f"GTRenderer: supersample must be >= 1, got {supersample}")
+        self.vertices, self.faces = v, f
+        self.supersample = int(supersample)
+        self.lighting = lighting or Lighting()
+        dev = self.device
+        self._points = wp.array(v, dtype=wp.vec3, device=dev)
+        self._indices = wp.array(f.ravel(), dtype=wp.int32, device=dev)
+        self._mesh = wp.Mesh(points=self._points, indices=self._indices)
+        self._faces = wp.array(f, dtype=wp.int32, device=dev)
+        self.smooth = bool(smooth_normals)
+        cn = corner_normals(v, f, crease_angle_deg=crease_angle_deg) if self.smooth else np.zeros((1, 3, 3), np.float32)
+        self._corner_normals = wp.array(cn, dtype=wp.vec3, device=dev)
+
+        dummy_v3 = np.zeros((1, 3), np.float32)
+        if texture is not None and uvs is not None and face_uvs is not None:
+            tex = np.ascontiguousarray(texture, dtype=np.float32)
+            if tex.ndim != 3 or tex.shape[2] != 3:
+                raise ValueError(f"GTRenderer: texture must be (H, W, 3), got {tex.shape}")
+            fuv = np.ascontiguousarray(face_uvs, dtype=np.int32)
+            if fuv.shape != f.shape:
+                raise ValueError(f"GTRenderer: face_uvs {fuv.shape} must match faces {f.shape}")
+            uv = np.ascontiguousarray(uvs, dtype=np.float32)
+            if fuv.min() < 0 or fuv.max() >= len(uv):
+                raise ValueError("GTRenderer: face_uvs index outside uvs")
+            self.color_mode = int(rk.COLOR_TEXTURE)
+        else:
+            tex, fuv, uv = np.zeros((1, 1, 3), np.float32), np.zeros((1, 3), np.int32), np.zeros((1, 2), np.float32)
+            self.color_mode = int(rk.COLOR_ALBEDO)
+        if self.color_mode == int(rk.COLOR_ALBEDO) and vertex_colors is not None:
+            vc = np.ascontiguousarray(vertex_colors, dtype=np.float32)
+            if vc.shape != v.shape:
+                raise ValueError(f"GTRenderer: vertex_colors {vc.shape} must match vertices {v.shape}")
+            self.color_mode = int(rk.COLOR_VERTEX)
+        else:
+            vc = dummy_v3
+        self._texture = wp.array(tex, dtype=wp.vec3, device=dev)
+        self._face_uvs = wp.array(fuv, dtype=wp.int32, device=dev)
+        self._uvs = wp.array(uv, dtype=wp.vec2, device=dev)
+        self._vertex_colors = wp.array(vc, dtype=wp.vec3, device=dev)
+        self.albedo = wp.vec3(*[float(x) for x in albedo])
+        lt = self.lighting
+        self._light_dirs = wp.array(np.asarray(lt.directions, np.float32).reshape(-1, 3), dtype=wp.vec3, device=dev)
+        self._light_rgb = wp.array(np.asarray(lt.colors, np.float32).reshape(-1, 3), dtype=wp.vec3, device=dev)
+        self._ambient = wp.vec3(*[float(x) for x in lt.ambient])
+        ext = float(np.linalg.norm(v.max(0) - v.min(0)))
+        self._scene_radius = max(ext, 1e-6)
+
+    @classmethod
+    def from_obj(cls, obj, **kwargs) -> "GTRenderer":
+        """Renderer of an :class:`holowarp.data.obj.ObjMesh` (or an OBJ path), welded first."""
+        from holowarp.data.obj import ObjMesh, load_obj
+
+        if not isinstance(obj, ObjMesh):
+            obj = load_obj(obj)
+        obj = obj.welded()
+        return cls(
+            obj.positions,
+            obj.faces,
+            uvs=obj.uvs if obj.textured else None,
+            face_uvs=obj.face_uvs if obj.textured else None,
+            texture=obj.texture if obj.textured else None,
+            vertex_colors=obj.vertex_colors,
+            **kwargs,
+        )
+
+    def render(self, viewmat, K, width: int, height: int, *, supersample: int | None = None) -> dict:
+        """Render one view.
+
+        Args:
+            viewmat: (4, 4) world-to-camera, OpenCV axes.
+            K: (3, 3) intrinsics in pixels.
+            width, height: image size in pixels.
+            supersample: override the renderer's rays-per-pixel along each axis.
+
+        Returns:
+            dict of NumPy arrays ``rgba`` (H, W, 4), ``normal`` (H, W, 3), ``depth`` (H, W),
+            ``mask`` (H, W) float32 and ``face`` (H, W) int32.
+        """
+        out = self.render_async(viewmat, K, width, height, supersample=supersample)
+        return {k: (v.numpy() if hasattr(v, "numpy") else v) for k, v in out.items()} | {
+            "mask": out["rgba"].numpy()[..., 3].copy()
+        }
+
+    def render_async(self, viewmat, K, width: int, height: int, *, supersample: int | None = None) -> dict:
+        """Launch one view and return the Warp output arrays (no host copy, no sync)."""
+        wp, rk = self._wp, self._rk
+        viewmat = np.asarray(viewmat, dtype=np.float64)
+        K = np.asarray(K, dtype=np.float64)
+        if viewmat.shape != (4, 4) or K.shape != (3, 3):
+            raise ValueError(f"render: viewmat must be (4, 4) and K (3, 3), got {viewmat.shape} and {K.shape}")
+        width, height = int(width), int(height)
+        if width < 1 or height < 1:
+            raise ValueError(f"render: image size must be positive, got {width}x{height}")
+        R = viewmat[:3, :3]
+        if abs(abs(np.linalg.det(R)) - 1.0) > 1e-4:
+            raise ValueError("render: viewmat rotation is not orthonormal")
+        cam_pos = -R.T @ viewmat[:3, 3]
+        ss = self.supersample if supersample is None else int(supersample)
+        dev = self.device
+        rgba = wp.empty((height, width), dtype=wp.vec4, device=dev)
+        normal = wp.empty((height, width), dtype=wp.vec3, device=dev)
+        depth = wp.empty((height, width), dtype=float, device=dev)
+        face = wp.empty((height, width), dtype=wp.int32, device=dev)
+        max_t = float(np.linalg.norm(cam_pos) + 4.0 * self._scene_radius + 1.0) * 4.0
+        wp.launch(
+            rk.raycast_kernel,
+            dim=(height, width),
+            inputs=[
+                self._mesh.id,
+                self._faces,
+                self._corner_normals,
+                int(self.smooth),
+                self.color_mode,
+                self.albedo,
+                self._vertex_colors,
+                self._face_uvs,
+                self._uvs,
+                self._texture,
+                self._light_dirs,
+                self._light_rgb,
+                self._ambient,
+                wp.vec3(*cam_pos.astype(np.float32)),
+                wp.mat33(*R.T.astype(np.float32).ravel()),
+                float(K[0, 0]),
+                float(K[1, 1]),
+                float(K[0, 2]),
+                float(K[1, 2]),
+                max(ss, 1),
+                max_t,
+            ],
+            outputs=[rgba, normal, depth, face],
+            device=dev,
+        )
+        return {"rgba": rgba, "normal": normal, "depth": depth, "face": face}
+
+    def render_views(self, viewmats, Ks, width: int, height: int, *, supersample: int | None = None, threads: int | None = None):
+        """Render many views; yields ``(index, result dict)`` in order.
+
+        On CPU, Warp runs each launch on one core; independent views are launched from
+        ``threads`` Python threads (Warp releases the GIL during a launch), default: the
+        number of usable cores.
+        """
+        n = len(viewmats)
+        if self.device != "cpu":
+            for i in range(n):
+                yield i, self.render(viewmats[i], Ks[i], width, height, supersample=supersample)
+            return
+        if threads is None:
+            threads = max(1, min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1, 8))
+        if threads <= 1 or n <= 1:
+            for i in range(n):
+                yield i, self.render(viewmats[i], Ks[i], width, height, supersample=supersample)
+            return
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=threads) as ex:
+            futs = {}
+            nxt = 0
+            for i in range(n):
+                while nxt < n and nxt < i + 2 * threads:
+                    futs[nxt] = ex.submit(self.render, viewmats[nxt], Ks[nxt], width, height, supersample=supersample)
+                    nxt += 1
+                yield i, futs.pop(i).result()
