@@ -13,9 +13,9 @@ Conventions are those of ``method.md`` §1: SI units, Z up, OpenCV cameras, tets
 that ``det[b-a, c-a, d-a] / 6 > 0``.
 """
 
+import importlib
+
 from holowarp.tetmesh import TetMesh
-from holowarp.mesh_io import MeshIOError, read_tetmesh, write_surface, write_tetmesh
-from holowarp.usd import write_usd
 
 __all__ = [
     "MeshIOError",
@@ -27,3 +27,19 @@ __all__ = [
 ]
 
 __version__ = "0.1.0"
+
+# I/O and USD are imported on first use so that ``import holowarp`` stays light (no pxr).
+_LAZY = {
+    "MeshIOError": "holowarp.mesh_io",
+    "read_tetmesh": "holowarp.mesh_io",
+    "write_surface": "holowarp.mesh_io",
+    "write_tetmesh": "holowarp.mesh_io",
+    "write_usd": "holowarp.usd",
+}
+
+
+def __getattr__(name):
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'holowarp' has no attribute {name!r}")
+    return getattr(importlib.import_module(mod), name)

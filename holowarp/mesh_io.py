@@ -1,0 +1,250 @@
+"""Tet-mesh and surface I/O with clear errors and atomic writes.
+
+Tet meshes: ``.vtu`` (VTK XML unstructured grid), ``.msh`` (Gmsh 4.1 written; 2.2 and 4.x
+read), ``.npz`` (``vertices`` (N,3) float64, ``tets`` (M,4) int32), and ``.usd``/``.usda``/
+``.usdc`` (the first ``UsdGeom.TetMesh``). Boundary surfaces: ``.obj`` and ``.ply``.
+
+VTK and Gmsh order a linear tetrahedron's nodes like holowarp (positive volume for
+``det[b-a, c-a, d-a] > 0``), so no reordering happens on either side.
+
+Every failure while reading raises :class:`MeshIOError` whose message starts with the file's
+path and says why (missing file, unknown extension, unreadable content, wrong cell types,
+non-finite coordinates, out-of-range or repeated indices). Every write goes to a temporary
+file in the destination folder that is renamed over the destination only on success.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from holowarp.fileio import atomic_path
+from holowarp.tetmesh import TetMesh, TetMeshError
+
+__all__ = [
+    "MeshIOError",
+    "TET_FORMATS",
+    "SURFACE_FORMATS",
+    "read_tetmesh",
+    "write_tetmesh",
+    "write_surface",
+    "read_surface",
+]
+
+TET_FORMATS = (".vtu", ".msh", ".npz", ".usd", ".usda", ".usdc")
+SURFACE_FORMATS = (".obj", ".ply")
+
+# meshio cell types that are volume elements but not linear tets: refuse them by name.
+_OTHER_VOLUME_CELLS = {
+    "tetra10", "hexahedron", "hexahedron20", "hexahedron27", "wedge", "wedge15",
+    "wedge18", "pyramid", "pyramid13", "pyramid14", "polyhedron",
+}
+
+
+class MeshIOError(ValueError):
+    """A mesh file cannot be read or written; the message names the file and the reason."""
+
+
+@contextlib.contextmanager
+def _quiet():
+    """meshio prints warnings to stdout; keep library chatter out of the user's terminal."""
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        yield
+
+
+def _check_input(path) -> Path:
+    path = Path(path)
+    if not path.exists():
+        raise MeshIOError(f"{path}: no such file")
+    if path.is_dir():
+        raise MeshIOError(f"{path}: is a folder, expected a mesh file")
+    if path.stat().st_size == 0:
+        raise MeshIOError(f"{path}: file is empty")
+    return path
+
+
+def _build(path: Path, vertices, tets) -> TetMesh:
+    try:
+        v = np.asarray(vertices, dtype=np.float64)
+        if v.ndim == 2 and v.shape[1] == 2:
+            raise MeshIOError(f"{path}: points are 2D; a tet mesh needs 3D coordinates")
+        return TetMesh(v, tets)
+    except TetMeshError as e:
+        raise MeshIOError(f"{path}: {e}") from None
+
+
+def read_tetmesh(path: str | os.PathLike) -> TetMesh:
+    """Read a tet mesh from ``.vtu``, ``.msh``, ``.npz`` or ``.usd[a|c]``.
+
+    Lower-dimensional cells (boundary triangles, lines, points that Gmsh files often carry)
+    are ignored; any volume cell that is not a linear tet is an error. Orientation is kept
+    as stored: call :meth:`TetMesh.oriented` to fix inverted tets.
+
+    Raises:
+        MeshIOError: missing or empty file, unknown extension, unreadable content, no or
+            wrong cell types, non-finite coordinates, out-of-range or repeated indices.
+    """
+    path = _check_input(path)
+    ext = path.suffix.lower()
+    if ext in SURFACE_FORMATS:
+        raise MeshIOError(
+            f"{path}: {ext} holds a surface, not a tet mesh; tet meshes are {', '.join(TET_FORMATS)}"
+        )
+    if ext not in TET_FORMATS:
+        raise MeshIOError(f"{path}: unknown tet-mesh extension {ext!r}; use one of {', '.join(TET_FORMATS)}")
+
+    if ext == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in ("vertices", "tets") if k not in z.files]
+                if missing:
+                    raise MeshIOError(
+                        f"{path}: missing array(s) {missing}; a holowarp .npz holds 'vertices' (N,3) and 'tets' (M,4)"
+                    )
+                v, t = z["vertices"], z["tets"]
+        except MeshIOError:
+            raise
+        except Exception as e:  # zipfile/pickle/format errors
+            raise MeshIOError(f"{path}: not a readable .npz archive ({type(e).__name__}: {e})") from None
+        if t.ndim != 2 or t.shape[1] != 4:
+            raise MeshIOError(f"{path}: 'tets' must have shape (M, 4), got {t.shape}")
+        if not np.issubdtype(t.dtype, np.integer):
+            raise MeshIOError(f"{path}: 'tets' must be integers, got {t.dtype}")
+        return _build(path, v, t)
+
+    if ext in (".usd", ".usda", ".usdc"):
+        from holowarp.usd import read_usd_tetmesh
+
+        try:
+            with _quiet():
+                return read_usd_tetmesh(path)
+        except TetMeshError as e:
+            raise MeshIOError(f"{path}: {e}") from None
+        except ValueError as e:
+            msg = str(e)
+            raise MeshIOError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
+        except Exception as e:  # pxr raises Tf.ErrorException on parse errors
+            raise MeshIOError(f"{path}: not a readable USD stage ({type(e).__name__}: {e})") from None
+
+    import meshio
+
+    try:
+        with _quiet():
+            m = meshio.read(path, file_format="gmsh" if ext == ".msh" else "vtu")
+    except IndexError as e:
+        # meshio's Gmsh reader maps node tags through a table: a tag beyond it lands here.
+        raise MeshIOError(f"{path}: element indices out of range, they reference missing nodes ({e})") from None
+    except (Exception, SystemExit) as e:  # meshio calls sys.exit() on some malformed files
+        raise MeshIOError(f"{path}: cannot parse as {ext} ({type(e).__name__}: {e})") from None
+    kinds = [c.type for c in m.cells]
+    other = sorted({k for k in kinds if k in _OTHER_VOLUME_CELLS})
+    if other:
+        raise MeshIOError(
+            f"{path}: holds {', '.join(other)} cells; holowarp reads linear tetrahedra ('tetra') only"
+        )
+    blocks = [c.data for c in m.cells if c.type == "tetra"]
+    if not blocks:
+        raise MeshIOError(
+            f"{path}: no tetrahedra found (cell types: {', '.join(sorted(set(kinds))) or 'none'})"
+        )
+    return _build(path, m.points, np.concatenate(blocks, axis=0))
+
+
+def write_tetmesh(path: str | os.PathLike, mesh: TetMesh, **usd_kwargs) -> Path:
+    """Write ``mesh`` by extension (``.vtu``, ``.msh``, ``.npz``, ``.usd[a|c]``), atomically.
+
+    ``usd_kwargs`` go to :func:`holowarp.usd.write_usd` (``material``, ``name``).
+    """
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in TET_FORMATS:
+        raise MeshIOError(f"{path}: unknown tet-mesh extension {ext!r}; use one of {', '.join(TET_FORMATS)}")
+    if ext in (".usd", ".usda", ".usdc"):
+        from holowarp.usd import write_usd
+
+        return write_usd(path, mesh, **usd_kwargs)
+    if ext == ".npz":
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(
+                    f, vertices=mesh.vertices.astype(np.float64), tets=mesh.tets.astype(np.int32)
+                )
+        return path
+
+    import meshio
+
+    m = meshio.Mesh(mesh.vertices.astype(np.float64), [("tetra", mesh.tets.astype(np.int32))])
+    with atomic_path(path) as tmp:
+        with _quiet():
+            if ext == ".msh":
+                meshio.write(tmp, m, file_format="gmsh", binary=False)
+            else:
+                meshio.write(tmp, m, file_format="vtu", binary=True, compression="zlib")
+    return path
+
+
+def write_surface(path: str | os.PathLike, surface) -> Path:
+    """Write a triangle surface as ``.obj`` or ``.ply`` (binary), atomically.
+
+    Args:
+        surface: a :class:`TetMesh` (its outward boundary is written, vertices compacted) or
+            a ``(vertices (V,3), faces (F,3))`` pair.
+    """
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in SURFACE_FORMATS:
+        raise MeshIOError(f"{path}: surface output must be one of {', '.join(SURFACE_FORMATS)}, got {ext!r}")
+    if isinstance(surface, TetMesh):
+        V, F = surface.surface_mesh()
+    else:
+        V, F = surface
+    V = np.asarray(V, dtype=np.float64)
+    F = np.asarray(F, dtype=np.int64)
+    with atomic_path(path) as tmp:
+        if ext == ".obj":
+            with open(tmp, "w", encoding="ascii") as f:
+                f.write("# holowarp boundary surface (outward-wound triangles)\n")
+                np.savetxt(f, V, fmt="v %.9g %.9g %.9g")
+                np.savetxt(f, F + 1, fmt="f %d %d %d")
+        else:
+            header = (
+                "ply\nformat binary_little_endian 1.0\ncomment holowarp boundary surface\n"
+                f"element vertex {len(V)}\nproperty float x\nproperty float y\nproperty float z\n"
+                f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n"
+            )
+            fr = np.empty(len(F), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+            fr["n"] = 3
+            fr["i"] = F
+            with open(tmp, "wb") as f:
+                f.write(header.encode("ascii"))
+                f.write(V.astype("<f4").tobytes())
+                f.write(fr.tobytes())
+    return path
+
+
+def read_surface(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a triangle surface (``.obj``, ``.ply``, ``.stl``, ...) as (V (N,3), F (F,3)).
+
+    Positions are welded (UV-seam duplicates merged), because textured OBJs split vertices
+    along seams and geometry code needs one vertex per position.
+    """
+    import trimesh
+
+    path = _check_input(path)
+    try:
+        with _quiet():
+            tm = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:
+        raise MeshIOError(f"{path}: cannot read surface ({type(e).__name__}: {e})") from None
+    if not hasattr(tm, "faces") or len(tm.faces) == 0:
+        raise MeshIOError(f"{path}: no triangles found")
+    V = np.asarray(tm.vertices, dtype=np.float64)
+    if not np.all(np.isfinite(V)):
+        raise MeshIOError(f"{path}: non-finite vertex coordinates")
+    F = np.asarray(tm.faces, dtype=np.int64)
+    uniq, inv = np.unique(V, axis=0, return_inverse=True)
+    return uniq, inv.reshape(-1)[F].astype(np.int32)
