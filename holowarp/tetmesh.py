@@ -365,6 +365,31 @@ class TetMesh:
         uk, idx, counts = np.unique(keys, return_index=True, return_counts=True)
         return np.sort(he[idx], axis=1), counts
 
+    def non_manifold_edges(self) -> np.ndarray:
+        """Boundary edges (K, 2) int64 that lie in a number of boundary faces other than two."""
+        edges, counts = self._boundary_edges
+        return edges[counts != 2]
+
+    def non_manifold_vertices(self) -> np.ndarray:
+        """Boundary vertices (K,) int64 whose boundary faces form more than one fan, i.e.
+        whose link in the boundary surface has several connected components."""
+        bf = self.boundary_faces().astype(np.int64)
+        if len(bf) == 0:
+            return np.zeros(0, np.int64)
+        n = max(self.num_vertices, 1)
+        # Link of vertex v in face (v, u, w) is the edge u-w. Nodes of the link graph are
+        # (v, u) pairs; the number of link components per v must be 1.
+        centre = bf.reshape(-1)  # [3F]
+        u = bf[:, [1, 2, 0]].reshape(-1)
+        w = bf[:, [2, 0, 1]].reshape(-1)
+        nodes, inv = np.unique(np.concatenate([centre * n + u, centre * n + w]), return_inverse=True)
+        k = len(centre)
+        g = sp.coo_matrix((np.ones(k), (inv[:k], inv[k:])), shape=(len(nodes), len(nodes)))
+        _, lab = connected_components(g, directed=False)
+        pairs = np.unique(np.stack([nodes // n, lab], axis=1), axis=0)
+        per_vertex = np.bincount(pairs[:, 0], minlength=self.num_vertices)
+        return np.flatnonzero(per_vertex > 1)
+
     def manifold(self) -> dict:
         """Boundary manifoldness (method.md §9).
 
@@ -377,9 +402,8 @@ class TetMesh:
             ``bad_edges`` and ``bad_vertices`` (counts), ``non_manifold_faces`` (faces in
             more than two tets).
         """
-        _, counts = self._boundary_edges
-        bad_edges = int(np.count_nonzero(counts != 2))
-        bad_vertices = self._count_non_manifold_vertices()
+        bad_edges = len(self.non_manifold_edges())
+        bad_vertices = len(self.non_manifold_vertices())
         nmf = self.non_manifold_faces()
         return {
             "manifold": bad_edges == 0 and bad_vertices == 0 and nmf == 0,
@@ -389,27 +413,6 @@ class TetMesh:
             "bad_vertices": bad_vertices,
             "non_manifold_faces": nmf,
         }
-
-    def _count_non_manifold_vertices(self) -> int:
-        bf = self.boundary_faces().astype(np.int64)
-        if len(bf) == 0:
-            return 0
-        n = max(self.num_vertices, 1)
-        # Link of vertex v in face (v, u, w) is the edge u-w. Nodes of the link graph are
-        # (v, u) pairs; the number of link components per v must be 1.
-        centre = bf.reshape(-1)  # [3F]
-        u = bf[:, [1, 2, 0]].reshape(-1)
-        w = bf[:, [2, 0, 1]].reshape(-1)
-        ku = centre * n + u
-        kw = centre * n + w
-        nodes, inv = np.unique(np.concatenate([ku, kw]), return_inverse=True)
-        k = len(ku)
-        g = sp.coo_matrix((np.ones(k), (inv[:k], inv[k:])), shape=(len(nodes), len(nodes)))
-        _, lab = connected_components(g, directed=False)
-        node_centre = nodes // n
-        pairs = np.unique(np.stack([node_centre, lab], axis=1), axis=0)
-        per_vertex = np.bincount(pairs[:, 0], minlength=self.num_vertices)
-        return int(np.count_nonzero(per_vertex > 1))
 
     def boundary_shells(self) -> int:
         """Number of connected pieces of the boundary surface (via shared vertices)."""
