@@ -562,16 +562,29 @@ def tetrahedralize_surface(
     f = np.ascontiguousarray(faces, dtype=np.int32)
     if len(v) < 4 or len(f) < 4:
         raise TetMeshError(f"tetrahedralize_surface: need a closed surface, got {len(v)} vertices, {len(f)} faces")
-    tv, tt = pytetwild.tetrahedralize(
-        v,
-        f,
-        edge_length_fac=edge_length_fac,
-        edge_length_abs=edge_length_abs,
-        optimize=optimize,
-        epsilon=epsilon,
-        num_threads=num_threads,
-        quiet=True,
-    )
+    # fTetWild drops a debug file (__tracked_surface.stl) into the working folder; run it in
+    # a scratch folder so users' folders stay clean.
+    import contextlib
+    import os
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="holowarp-tetwild-") as scratch:
+        cwd = os.getcwd()
+        os.chdir(scratch)
+        try:
+            tv, tt = pytetwild.tetrahedralize(
+                v,
+                f,
+                edge_length_fac=edge_length_fac,
+                edge_length_abs=edge_length_abs,
+                optimize=optimize,
+                epsilon=epsilon,
+                num_threads=num_threads,
+                quiet=True,
+            )
+        finally:
+            with contextlib.suppress(OSError):
+                os.chdir(cwd)
     if tt is None or len(tt) == 0:
         raise TetMeshError("tetrahedralize_surface: fTetWild produced no tetrahedra")
     mesh, _ = TetMesh(tv, tt).oriented()

@@ -7,7 +7,8 @@ import pytest
 
 from holowarp.primitives import box_tetmesh
 from holowarp.stages.cleanup import cleanup, repair_manifold
-from holowarp.stages.tet_init import HULL_SCALE, HullError, scaled_hull
+from holowarp.config import TetInitConfig
+from holowarp.stages.tet_init import HullError, scaled_hull
 from holowarp.tetmesh import TetMesh
 
 
@@ -80,7 +81,7 @@ def test_scaled_hull_is_outward_and_scaled_about_its_centroid(rng):
     assert tm.is_watertight and tm.volume > 0
     from scipy.spatial import ConvexHull
 
-    assert tm.volume == pytest.approx(ConvexHull(P).volume * HULL_SCALE**3, rel=1e-9)
+    assert tm.volume == pytest.approx(ConvexHull(P).volume * TetInitConfig.hull_scale**3, rel=1e-9)
 
 
 @pytest.mark.parametrize(

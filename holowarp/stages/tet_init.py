@@ -1,47 +1,29 @@
 """Tetrahedral initialisation (method.md §4).
 
 1. Convex hull of the stage-0 surfel centres (after dropping low-opacity ones).
-2. The hull scaled by ``HULL_SCALE`` = 1.1 about its centroid (the mean of its vertices).
+2. The hull scaled by ``hull_scale`` = 1.1 about its centroid (the mean of its vertices).
 3. fTetWild (pytetwild) with epsilon = 1e-3; ``edge_length_fac`` is the resolution knob.
-4. One surfel per tet at its centroid, barycentric coordinates (1/4, 1/4, 1/4, 1/4).
+4. One surfel per tet at its centroid, barycentric coordinates (1/4, 1/4, 1/4, 1/4): that
+   binding lives in :class:`holowarp.tetgs.TetGaussians`.
+
+The numbers live in :class:`holowarp.config.TetInitConfig`.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from holowarp.config import TetInitConfig
 from holowarp.tetmesh import TetMesh, tetrahedralize_surface
 
-__all__ = ["HULL_SCALE", "TETWILD_EPSILON", "HullError", "TetInitConfig", "initial_tetmesh", "scaled_hull"]
-
-#: Hull inflation about its centroid so it strictly covers the object (method.md §4).
-HULL_SCALE = 1.1
-#: fTetWild envelope, relative to the bbox (method.md §4).
-TETWILD_EPSILON = 1e-3
+__all__ = ["HullError", "initial_tetmesh", "scaled_hull"]
 
 
 class HullError(ValueError):
     """The points do not span a 3D hull (too few views, too few or coplanar points)."""
 
 
-@dataclass(frozen=True)
-class TetInitConfig:
-    """Settings of §4.
-
-    Attributes:
-        edge_length_fac: fTetWild ideal edge length as a fraction of the hull's bbox diagonal.
-        min_opacity: surfels with opacity below this are dropped before the hull.
-        min_points: fewer surviving centres than this is a degenerate hull.
-    """
-
-    edge_length_fac: float = 0.03
-    min_opacity: float = 0.05
-    min_points: int = 16
-
-
-def scaled_hull(points: np.ndarray, *, scale: float = HULL_SCALE):
+def scaled_hull(points: np.ndarray, *, scale: float = TetInitConfig.hull_scale):
     """Convex hull of ``points`` (P, 3) scaled by ``scale`` about the mean of its vertices.
 
     Returns:
@@ -96,10 +78,5 @@ def initial_tetmesh(
             f"only {len(P)} surfel centres with opacity >= {config.min_opacity}; at least "
             f"{config.min_points} are needed for a hull (stage 0 failed to fit the object?)"
         )
-    V, F = scaled_hull(P)
-    return tetrahedralize_surface(V, F, edge_length_fac=config.edge_length_fac, epsilon=TETWILD_EPSILON)
-
-
-def centroid_binding(mesh: TetMesh) -> np.ndarray:
-    """Barycentric coordinates (M, 4) of one surfel per tet at its centroid (§4 step 4)."""
-    return np.full((mesh.num_tets, 4), 0.25)
+    V, F = scaled_hull(P, scale=config.hull_scale)
+    return tetrahedralize_surface(V, F, edge_length_fac=config.edge_length_fac, epsilon=config.epsilon)
