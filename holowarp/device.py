@@ -24,6 +24,10 @@ def init_warp():
 
     if not _warp_ready:
         wp.config.quiet = True
+        # Warp >= 1.10 ignores ``quiet``; its banner and module-load lines go to stdout and
+        # would corrupt JSON printed by commands, so raise the log level too.
+        if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
+            wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
         wp.init()
         _warp_ready = True
     return wp
