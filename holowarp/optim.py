@@ -1,0 +1,131 @@
+"""Vertex optimiser of the geometry stage (method.md §6): uniform Adam + cosine schedule.
+
+``UniformAdam`` is Adam with ONE second-moment normaliser shared by every element of every
+parameter in a group ("AdamUniform" of Nicolet et al. 2021, "Large Steps in Inverse
+Rendering", as used by TetSphere Splatting), plus a cap on each vertex's displacement per
+step. A shared normaliser keeps the relative sizes of the gradient entries, so the step is
+a uniformly scaled gradient-momentum step: vertices with small gradients are not blown up
+to the same step length as vertices with large ones, which is what keeps a mesh smooth.
+
+``cosine_lr`` / ``CosineLR`` anneal the learning rate from 2e-4 to 1e-4 (method.md §6).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+__all__ = ["LR_START", "LR_END", "UniformAdam", "cosine_lr", "CosineLR"]
+
+#: Vertex learning rate at the start and end of a geometry block, method.md §6.
+LR_START = 2.0e-4
+LR_END = 1.0e-4
+
+
+class UniformAdam(torch.optim.Optimizer):
+    """Adam with one shared second-moment normaliser per parameter group.
+
+    Per element, the first moment ``m`` and second moment ``v`` follow Adam (with bias
+    correction). The normaliser is the MAXIMUM of ``sqrt(v_hat)`` over all elements of all
+    parameters in the group (the infinity norm, as Nicolet et al.):
+    ``step = lr * m_hat / (max sqrt(v_hat) + eps)``. Then each vertex's displacement (a row
+    over the last dimension of a parameter with >= 2 dims, e.g. (N, 3) positions; single
+    elements for 1-D parameters) is scaled down to length ``max_step`` when longer.
+
+    Args:
+        params: parameters or parameter groups.
+        lr: learning rate (metres per unit normalised step for positions).
+        betas: Adam's moment decay rates.
+        eps: added to the shared normaliser.
+        max_step: largest displacement of one vertex in one step, metres; ``None`` for no
+            cap.
+    """
+
+    def __init__(self, params, lr: float = LR_START, betas=(0.9, 0.999), eps: float = 1.0e-8, max_step: float | None = None):
+        if not lr >= 0.0:
+            raise ValueError(f"UniformAdam: lr must be >= 0, got {lr}")
+        b1, b2 = betas
+        if not (0.0 <= b1 < 1.0 and 0.0 <= b2 < 1.0):
+            raise ValueError(f"UniformAdam: betas must lie in [0, 1), got {betas}")
+        if not eps >= 0.0:
+            raise ValueError(f"UniformAdam: eps must be >= 0, got {eps}")
+        if max_step is not None and not max_step > 0.0:
+            raise ValueError(f"UniformAdam: max_step must be > 0 or None, got {max_step}")
+        super().__init__(params, dict(lr=lr, betas=(float(b1), float(b2)), eps=eps, max_step=max_step))
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        loss = None
+        if closure is not None:
+            with torch.enable_grad():
+                loss = closure()
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            params = [p for p in group["params"] if p.grad is not None]
+            if not params:
+                continue
+            m_hats, v_maxes = [], []
+            for p in params:
+                if p.grad.is_sparse:
+                    raise RuntimeError("UniformAdam does not support sparse gradients")
+                st = self.state[p]
+                if not st:
+                    st["step"] = 0
+                    st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                    st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                st["step"] += 1
+                t = st["step"]
+                g = p.grad
+                st["exp_avg"].mul_(b1).add_(g, alpha=1.0 - b1)
+                st["exp_avg_sq"].mul_(b2).addcmul_(g, g, value=1.0 - b2)
+                m_hats.append(st["exp_avg"] / (1.0 - b1**t))
+                v_maxes.append(st["exp_avg_sq"].max() / (1.0 - b2**t) if p.numel() else p.new_zeros(()))
+            # one normaliser for the whole group (stays on device: no host sync)
+            denom = torch.stack([v.to(params[0].dtype) for v in v_maxes]).max().sqrt() + group["eps"]
+            for p, m_hat in zip(params, m_hats):
+                upd = m_hat * (group["lr"] / denom)
+                cap = group["max_step"]
+                if cap is not None:
+                    if upd.ndim >= 2:
+                        n = upd.norm(dim=-1, keepdim=True)
+                    else:
+                        n = upd.abs()
+                    upd = upd * torch.clamp(cap / n.clamp_min(torch.finfo(upd.dtype).tiny), max=1.0)
+                p.sub_(upd)
+        return loss
+
+
+def cosine_lr(step: int, total: int, lr_start: float = LR_START, lr_end: float = LR_END) -> float:
+    """Cosine-annealed learning rate (method.md §6).
+
+    ``lr(t) = lr_end + (lr_start - lr_end) (1 + cos(pi t / total)) / 2`` for ``t`` in
+    ``[0, total]``; steps past ``total`` stay at ``lr_end``.
+    """
+    if total <= 0:
+        raise ValueError(f"cosine_lr: total must be positive, got {total}")
+    t = min(max(int(step), 0), int(total))
+    return lr_end + 0.5 * (lr_start - lr_end) * (1.0 + math.cos(math.pi * t / total))
+
+
+class CosineLR(torch.optim.lr_scheduler.LRScheduler):
+    """Torch scheduler setting every group's lr to :func:`cosine_lr` of the step count.
+
+    Example:
+        >>> opt = UniformAdam([x])
+        >>> sched = CosineLR(opt, total=5000)
+        >>> for it in range(5000):
+        ...     loss = ...; opt.zero_grad(); loss.backward(); opt.step(); sched.step()
+    """
+
+    def __init__(self, optimizer, total: int, lr_start: float = LR_START, lr_end: float = LR_END, last_epoch: int = -1):
+        if total <= 0:
+            raise ValueError(f"CosineLR: total must be positive, got {total}")
+        self.total = int(total)
+        self.lr_start = float(lr_start)
+        self.lr_end = float(lr_end)
+        super().__init__(optimizer, last_epoch)
+
+    def get_lr(self):
+        lr = cosine_lr(self.last_epoch, self.total, self.lr_start, self.lr_end)
+        return [lr for _ in self.optimizer.param_groups]
