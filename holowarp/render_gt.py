@@ -22,7 +22,6 @@ The same code runs on CPU and CUDA (``device``).
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -288,31 +287,7 @@ class GTRenderer:
         )
         return {"rgba": rgba, "normal": normal, "depth": depth, "face": face}
 
-    def render_views(self, viewmats, Ks, width: int, height: int, *, supersample: int | None = None, threads: int | None = None):
-        """Render many views; yields ``(index, result dict)`` in order.
-
-        On CPU, Warp runs each launch on one core; independent views are launched from
-        ``threads`` Python threads (Warp releases the GIL during a launch), default: the
-        number of usable cores.
-        """
-        n = len(viewmats)
-        if self.device != "cpu":
-            for i in range(n):
-                yield i, self.render(viewmats[i], Ks[i], width, height, supersample=supersample)
-            return
-        if threads is None:
-            threads = max(1, min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1, 8))
-        if threads <= 1 or n <= 1:
-            for i in range(n):
-                yield i, self.render(viewmats[i], Ks[i], width, height, supersample=supersample)
-            return
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(max_workers=threads) as ex:
-            futs = {}
-            nxt = 0
-            for i in range(n):
-                while nxt < n and nxt < i + 2 * threads:
-                    futs[nxt] = ex.submit(self.render, viewmats[nxt], Ks[nxt], width, height, supersample=supersample)
-                    nxt += 1
-                yield i, futs.pop(i).result()
+    def render_views(self, viewmats, Ks, width: int, height: int, *, supersample: int | None = None):
+        """Render many views; yields ``(index, result dict)`` in order (one launch per view)."""
+        for i in range(len(viewmats)):
+            yield i, self.render(viewmats[i], Ks[i], width, height, supersample=supersample)

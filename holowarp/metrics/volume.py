@@ -1,0 +1,75 @@
+"""Volume IoU by inside tests on uniform points (method.md §9).
+
+The inside test is Warp's fast generalised winding number on a BVH
+(:mod:`holowarp.kernels.winding`): robust for closed surfaces with small defects, fast on
+CPU, and the same code on CUDA.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from holowarp.device import init_warp, resolve_device
+
+__all__ = ["inside_mask", "volume_iou", "VOLUME_POINTS", "VOLUME_PADDING"]
+
+#: Uniform query points for volume IoU (method.md §9: at least 100k).
+VOLUME_POINTS = 100_000
+#: Padding of the sampling box, as a fraction of its largest side.
+VOLUME_PADDING = 0.05
+
+
+def inside_mask(vertices, faces, points, *, device: str = "cpu") -> np.ndarray:
+    """(P,) bool: which ``points`` (P, 3) lie inside the closed surface (V, 3)/(F, 3)."""
+    wp = init_warp()
+    from holowarp.kernels.winding import winding_inside_kernel
+
+    dev = resolve_device(device)
+    v = np.ascontiguousarray(vertices, dtype=np.float32)
+    f = np.ascontiguousarray(faces, dtype=np.int32)
+    p = np.ascontiguousarray(points, dtype=np.float32)
+    if len(f) == 0:
+        return np.zeros(len(p), dtype=bool)
+    mesh = wp.Mesh(
+        points=wp.array(v, dtype=wp.vec3, device=dev),
+        indices=wp.array(f.ravel(), dtype=wp.int32, device=dev),
+        support_winding_number=True,
+    )
+    pts = wp.array(p, dtype=wp.vec3, device=dev)
+    out = wp.zeros(len(p), dtype=wp.int32, device=dev)
+    span = float(np.linalg.norm(np.concatenate([v, p]).max(0) - np.concatenate([v, p]).min(0)))
+    wp.launch(winding_inside_kernel, dim=len(p), inputs=[mesh.id, pts, 2.0 * span + 1.0], outputs=[out], device=dev)
+    return out.numpy().astype(bool)
+
+
+def volume_iou(
+    pred_vertices,
+    pred_faces,
+    gt_vertices,
+    gt_faces,
+    *,
+    num_points: int = VOLUME_POINTS,
+    padding: float = VOLUME_PADDING,
+    rng=None,
+    seed: int | None = None,
+    device: str = "cpu",
+) -> float:
+    """Intersection over union of the solids bounded by two closed surfaces.
+
+    ``num_points`` uniform points are drawn in the union of both bounding boxes, padded by
+    ``padding`` times its largest side. Returns NaN when neither solid contains a point.
+    """
+    rng = rng if rng is not None else np.random.default_rng(seed)
+    pv = np.asarray(pred_vertices, dtype=np.float64)
+    gv = np.asarray(gt_vertices, dtype=np.float64)
+    allv = np.concatenate([pv, gv]) if len(pv) else gv
+    lo, hi = allv.min(0), allv.max(0)
+    pad = padding * float((hi - lo).max())
+    lo, hi = lo - pad, hi + pad
+    pts = lo + (hi - lo) * rng.random((int(num_points), 3))
+    inp = inside_mask(pv, pred_faces, pts, device=device) if len(pv) else np.zeros(len(pts), bool)
+    ing = inside_mask(gv, gt_faces, pts, device=device)
+    union = np.count_nonzero(inp | ing)
+    if union == 0:
+        return float("nan")
+    return float(np.count_nonzero(inp & ing) / union)
