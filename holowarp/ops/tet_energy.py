@@ -1,0 +1,419 @@
+"""Autograd wrappers of the tetrahedral energy kernels (method.md §5, §6).
+
+Each function takes torch tensors and returns a differentiable torch result computed by the
+Warp kernels in ``holowarp.kernels.tet_energy`` with hand-written backward passes. float32
+and float64 inputs are both supported (the float64 path is what the finite-difference tests
+use). The domain API with rest-shape capture and weights is ``holowarp.energies``;
+``holowarp.ops.tet_energy_ref`` is the dense torch reference the tests compare against.
+
+Shapes: ``x`` (N, 3) vertex positions (metres); ``tets`` (M, 4) int32; ``dm_inv`` (M, 3, 3)
+inverse rest edge matrices; ``adjacency`` (M, 4) int32 face neighbours (-1 on the boundary);
+``weights`` (M,).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import warp as wp
+
+from holowarp.kernels import tet_energy as K_
+from holowarp.ops._warp import to_wp, wp_device
+
+__all__ = [
+    "HCTopology",
+    "hc_topology",
+    "deformation_gradients",
+    "biharmonic_energy",
+    "inversion_penalty",
+    "hc_targets",
+    "hc_energy",
+    "eikonal_loss",
+    "smoothness_loss",
+]
+
+_TYPES = {
+    torch.float32: (wp.float32, wp.vec3f, wp.mat33f),
+    torch.float64: (wp.float64, wp.vec3d, wp.mat33d),
+}
+
+
+def _types(t: torch.Tensor):
+    try:
+        return _TYPES[t.dtype]
+    except KeyError:
+        raise TypeError(f"tet energies support float32 and float64 tensors, got {t.dtype}") from None
+
+
+def _vec(t, V):
+    return to_wp(t, V)
+
+
+def _mat(t, M):
+    return to_wp(t, M)
+
+
+def _i(t, dtype=None):
+    return to_wp(t.to(torch.int32), dtype)
+
+
+def _check_x(x: torch.Tensor, name: str = "x"):
+    if not isinstance(x, torch.Tensor) or x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"{name} must be a (N, 3) float tensor, got {getattr(x, 'shape', type(x))}")
+    _types(x)
+
+
+# --- deformation gradients -------------------------------------------------------------
+
+
+class _DeformationGradient(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, tets, dm_inv):
+        T, V, M = _types(x)
+        dev = wp_device(x)
+        F = torch.empty((tets.shape[0], 3, 3), dtype=x.dtype, device=x.device)
+        wp.launch(
+            K_.deformation_gradient_kernel,
+            dim=tets.shape[0],
+            inputs=[_vec(x, V), _i(tets, wp.vec4i), _mat(dm_inv, M)],
+            outputs=[_mat(F, M)],
+            device=dev,
+        )
+        ctx.save_for_backward(tets, dm_inv)
+        ctx.num_vertices = x.shape[0]
+        return F
+
+    @staticmethod
+    def backward(ctx, grad_F):
+        tets, dm_inv = ctx.saved_tensors
+        T, V, M = _types(dm_inv)
+        grad_x = torch.zeros((ctx.num_vertices, 3), dtype=dm_inv.dtype, device=dm_inv.device)
+        wp.launch(
+            K_.deformation_gradient_backward_kernel,
+            dim=tets.shape[0],
+            inputs=[_i(tets, wp.vec4i), _mat(dm_inv, M), _mat(grad_F.to(dm_inv.dtype).contiguous(), M)],
+            outputs=[_vec(grad_x, V)],
+            device=wp_device(dm_inv),
+        )
+        return grad_x, None, None
+
+
+def deformation_gradients(x: torch.Tensor, tets: torch.Tensor, dm_inv: torch.Tensor) -> torch.Tensor:
+    """Per-tet deformation gradients ``F = Ds Dm^-1`` (M, 3, 3), differentiable in ``x``.
+
+    ``Ds = [x1 - x0, x2 - x0, x3 - x0]`` (columns) of each tet in the current positions.
+    """
+    _check_x(x)
+    return _DeformationGradient.apply(x.contiguous(), tets.contiguous(), dm_inv.to(x.dtype).contiguous())
+
+
+# --- weighted bi-harmonic ---------------------------------------------------------------
+
+
+class _Biharmonic(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, tets, dm_inv, adjacency, weights):
+        T, V, M = _types(x)
+        dev = wp_device(x)
+        m = tets.shape[0]
+        F = torch.empty((m, 3, 3), dtype=x.dtype, device=x.device)
+        LF = torch.empty_like(F)
+        energy = torch.empty(m, dtype=x.dtype, device=x.device)
+        tets_wp, adj_wp = _i(tets, wp.vec4i), _i(adjacency, wp.vec4i)
+        wp.launch(
+            K_.deformation_gradient_kernel, dim=m,
+            inputs=[_vec(x, V), tets_wp, _mat(dm_inv, M)], outputs=[_mat(F, M)], device=dev,
+        )
+        wp.launch(
+            K_.biharmonic_forward_kernel, dim=m,
+            inputs=[_mat(F, M), adj_wp, to_wp(weights)], outputs=[_mat(LF, M), to_wp(energy)], device=dev,
+        )
+        ctx.save_for_backward(tets, adjacency, weights, LF, dm_inv)
+        ctx.num_vertices = x.shape[0]
+        return energy.sum()
+
+    @staticmethod
+    def backward(ctx, grad_E):
+        tets, adjacency, weights, LF, dm_inv = ctx.saved_tensors
+        T, V, M = _types(LF)
+        grad_x = torch.zeros((ctx.num_vertices, 3), dtype=LF.dtype, device=LF.device)
+        g = grad_E.reshape(1).to(LF.dtype).contiguous()
+        wp.launch(
+            K_.biharmonic_backward_kernel,
+            dim=tets.shape[0],
+            inputs=[_i(tets, wp.vec4i), _i(adjacency, wp.vec4i), to_wp(weights), _mat(LF, M), _mat(dm_inv, M), to_wp(g)],
+            outputs=[_vec(grad_x, V)],
+            device=wp_device(LF),
+        )
+        return grad_x, None, None, None, None
+
+
+def biharmonic_energy(x, tets, dm_inv, adjacency, weights) -> torch.Tensor:
+    """Weighted bi-harmonic energy ``sum_e w_e ||(L F)_e||_F^2`` (method.md §6), a scalar.
+
+    ``L`` is the tet face-adjacency graph Laplacian given by ``adjacency``:
+    ``(L F)_e = deg_e F_e - sum_{e' ~ e} F_e'``. A rigid motion gives the same ``F`` on every
+    tet, so both the energy and its gradient vanish.
+    """
+    _check_x(x)
+    return _Biharmonic.apply(
+        x.contiguous(), tets.contiguous(), dm_inv.to(x.dtype).contiguous(),
+        adjacency.contiguous(), weights.to(x.dtype).contiguous(),
+    )
+
+
+# --- inversion penalty -------------------------------------------------------------------
+
+
+def _fused(value: torch.Tensor, pairs):
+    """Attach precomputed gradients to ``value``.
+
+    pairs: [(input tensor, d value / d input or None)]. Used for energies whose value and
+    gradient come out of one fused kernel pass; backward only rescales by dLoss/dvalue.
+    """
+    grads = [g for _, g in pairs]
+    inputs = [t for t, _ in pairs]
+    return _FusedEnergy.apply(value, len(pairs), *grads, *inputs)
+
+
+class _FusedEnergy(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, value, n, *rest):
+        grads = rest[:n]
+        ctx.n = n
+        ctx.has = [g is not None for g in grads]
+        ctx.save_for_backward(*[g for g in grads if g is not None])
+        return value.clone()
+
+    @staticmethod
+    def backward(ctx, grad_E):
+        saved = iter(ctx.saved_tensors)
+        grads = [next(saved) * grad_E if h else None for h in ctx.has]
+        return (None, None, *(None for _ in range(ctx.n)), *grads)
+
+
+def inversion_penalty(x, tets, dm_inv, p: float = 2.0) -> torch.Tensor:
+    """Non-inversion penalty ``sum_e max(-det F_e, 0)^p`` (method.md §6), a scalar.
+
+    A SUM over tets (not a mean), so one inverted tet costs the same whatever the mesh
+    size. ``p >= 1``; ``p > 1`` makes it continuously differentiable at ``det F = 0``.
+    """
+    _check_x(x)
+    p = float(p)
+    if not p >= 1.0:
+        raise ValueError(f"inversion_penalty: p must be >= 1, got {p}")
+    T, V, M = _types(x)
+    x = x.contiguous()
+    m = tets.shape[0]
+    energy = torch.empty(m, dtype=x.dtype, device=x.device)
+    need = x.requires_grad and torch.is_grad_enabled()
+    grad_x = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
+    wp.launch(
+        K_.inversion_penalty_kernel,
+        dim=m,
+        inputs=[_vec(x, V), _i(tets.contiguous(), wp.vec4i), _mat(dm_inv.to(x.dtype).contiguous(), M), T(p), int(need)],
+        outputs=[to_wp(energy), _vec(grad_x, V)],
+        device=wp_device(x),
+    )
+    value = energy.sum()
+    if not need:
+        return value
+    return _fused(value, [(x, grad_x)])
+
+
+# --- HC-Laplacian -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HCTopology:
+    """Boundary-surface connectivity used by the HC-Laplacian energy.
+
+    Attributes:
+        surf_ids: (S,) int32 global ids of the surface vertices (sorted).
+        nbr_offsets: (S + 1,) int32 CSR offsets into ``nbr_ids``.
+        nbr_ids: (nnz,) int32 local ids of each surface vertex's umbrella neighbours
+            (vertices sharing a boundary edge).
+        faces_global: (B, 3) int32 boundary faces in global ids (outward winding).
+        faces_local: (B, 3) int32 the same faces in local surface ids.
+    """
+
+    surf_ids: torch.Tensor
+    nbr_offsets: torch.Tensor
+    nbr_ids: torch.Tensor
+    faces_global: torch.Tensor
+    faces_local: torch.Tensor
+
+    @property
+    def num_surface_vertices(self) -> int:
+        return int(self.surf_ids.shape[0])
+
+
+def hc_topology(boundary_faces, *, device=None) -> HCTopology:
+    """Build :class:`HCTopology` from boundary faces (B, 3) (outward-wound, global ids)."""
+    f = boundary_faces
+    if isinstance(f, torch.Tensor):
+        device = f.device if device is None else device
+        f = f.detach().cpu().numpy()
+    f = np.asarray(f)
+    if f.ndim != 2 or f.shape[1] != 3 or not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"boundary_faces must be a (B, 3) integer array, got {f.shape} {f.dtype}")
+    if f.size and f.min() < 0:
+        raise ValueError("boundary_faces has negative vertex ids")
+    f = f.astype(np.int64)
+    surf, local = np.unique(f.reshape(-1), return_inverse=True)
+    local = local.reshape(-1, 3)
+    e = np.concatenate([local[:, [0, 1]], local[:, [1, 2]], local[:, [2, 0]]])
+    e = np.concatenate([e, e[:, ::-1]])
+    e = np.unique(e, axis=0)  # directed, each undirected edge both ways, sorted by source
+    counts = np.bincount(e[:, 0], minlength=len(surf)) if len(e) else np.zeros(len(surf), np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    dev = torch.device("cpu") if device is None else torch.device(device)
+
+    def T(a):
+        return torch.as_tensor(np.ascontiguousarray(a, dtype=np.int32), device=dev)
+
+    return HCTopology(
+        surf_ids=T(surf), nbr_offsets=T(offsets), nbr_ids=T(e[:, 1] if len(e) else np.zeros(0)),
+        faces_global=T(f.reshape(-1, 3)), faces_local=T(local),
+    )
+
+
+@torch.no_grad()
+def hc_targets(x, topo: HCTopology, *, x_orig=None, alpha: float = 0.0, beta: float = 0.5):
+    """HC-Laplacian targets and outward unit normals of the surface vertices (no gradient).
+
+    Vollmer et al. 1999, with ``q = x`` the current and ``o = x_orig`` the original positions:
+    ``p_i = mean_{j in N(i)} q_j``, ``b_i = p_i - (alpha o_i + (1 - alpha) q_i)``,
+    ``target_i = p_i - (beta b_i + (1 - beta) mean_{j in N(i)} b_j)``. Normals are the
+    normalised sums of the (area-weighted) boundary face normals around each vertex.
+
+    Returns:
+        target (S, 3), normal (S, 3) in ``x``'s dtype, ordered as ``topo.surf_ids``.
+    """
+    _check_x(x)
+    T, V, M = _types(x)
+    dev = wp_device(x)
+    S = topo.num_surface_vertices
+    x = x.detach().contiguous()
+    xo = x if x_orig is None else x_orig.detach().to(x.dtype).contiguous()
+    p = torch.empty((S, 3), dtype=x.dtype, device=x.device)
+    b = torch.empty_like(p)
+    nacc = torch.zeros_like(p)
+    target = torch.empty_like(p)
+    normal = torch.empty_like(p)
+    sid, off, nid = _i(topo.surf_ids), _i(topo.nbr_offsets), _i(topo.nbr_ids)
+    wp.launch(K_.hc_umbrella_kernel, dim=S, inputs=[_vec(x, V), _vec(xo, V), sid, off, nid, T(alpha)],
+              outputs=[_vec(p, V), _vec(b, V)], device=dev)
+    wp.launch(K_.hc_face_normal_kernel, dim=topo.faces_global.shape[0],
+              inputs=[_vec(x, V), _i(topo.faces_global, wp.vec3i), _i(topo.faces_local, wp.vec3i)],
+              outputs=[_vec(nacc, V)], device=dev)
+    wp.launch(K_.hc_target_kernel, dim=S, inputs=[_vec(p, V), _vec(b, V), off, nid, _vec(nacc, V), T(beta)],
+              outputs=[_vec(target, V), _vec(normal, V)], device=dev)
+    return target, normal
+
+
+def hc_energy(x, topo: HCTopology, target, normal, lam_cond: float) -> torch.Tensor:
+    """Two-stage HC-Laplacian energy (method.md §6) for given targets and normals, a scalar.
+
+    ``d_i = target_i - x_i`` (the move that would bring vertex i onto its HC target),
+    ``d_n = d_i . n_i`` with ``n_i`` the OUTWARD normal, ``d_t = d_i - d_n n_i``;
+    ``E = sum_S ||d_t||^2 + lam_cond min(d_n, 0)^2 + max(d_n, 0)^2``.
+    So ``max(d_n, 0)`` is the outward part: a vertex lying inside its target (a dent, a
+    concavity) is always pulled out, while a vertex outside its target (a bump) is pulled
+    in only when ``lam_cond > 0``. Stage 1 (``lam_cond = 0``) pushes concavities out without
+    shrinking the surface; stage 2 (``lam_cond = 1``) smooths both ways.
+
+    ``target`` and ``normal`` are constants (stop-gradient, e.g. from :func:`hc_targets`):
+    the gradient is ``-2 (d_t + (lam_cond min(d_n,0) + max(d_n,0)) n)`` per vertex, i.e. the
+    gradient flow moves each vertex towards its HC target, as Vollmer's smoothing step does.
+    """
+    _check_x(x)
+    T, V, M = _types(x)
+    x = x.contiguous()
+    S = topo.num_surface_vertices
+    energy = torch.empty(S, dtype=x.dtype, device=x.device)
+    need = x.requires_grad and torch.is_grad_enabled()
+    grad_x = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
+    wp.launch(
+        K_.hc_energy_kernel,
+        dim=S,
+        inputs=[_vec(x, V), _i(topo.surf_ids), _vec(target.detach().to(x.dtype).contiguous(), V),
+                _vec(normal.detach().to(x.dtype).contiguous(), V), T(float(lam_cond)), int(need)],
+        outputs=[to_wp(energy), _vec(grad_x, V)],
+        device=wp_device(x),
+    )
+    value = energy.sum()
+    if not need:
+        return value
+    return _fused(value, [(x, grad_x)])
+
+
+# --- eikonal / smoothness (method.md §5) -----------------------------------------------
+
+
+def _check_edges(edges, n, name):
+    if not isinstance(edges, torch.Tensor) or edges.ndim != 2 or edges.shape[1] != 2 or edges.is_floating_point():
+        raise ValueError(f"{name}: edges must be a (E, 2) integer tensor, got {getattr(edges, 'shape', type(edges))}")
+
+
+def eikonal_loss(phi: torch.Tensor, edges: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``mean_E (|phi_u - phi_v| / l_uv - 1)^2`` with ``l_uv = |x_u - x_v|`` (method.md §5).
+
+    Differentiable in ``phi`` (N,) and in ``x`` (N, 3) (the edge lengths follow the
+    vertices). ``|.|`` has derivative 0 at 0. An empty edge set gives 0.
+    """
+    _check_x(x, "eikonal_loss: x")
+    _check_edges(edges, x.shape[0], "eikonal_loss")
+    if phi.ndim != 1 or phi.shape[0] != x.shape[0]:
+        raise ValueError(f"eikonal_loss: phi must have shape ({x.shape[0]},), got {tuple(phi.shape)}")
+    T, V, M = _types(x)
+    phi = phi.to(x.dtype).contiguous()
+    x = x.contiguous()
+    E = edges.shape[0]
+    if E == 0:
+        return (phi.sum() + x.sum()) * 0.0
+    energy = torch.empty(E, dtype=x.dtype, device=x.device)
+    need_phi = phi.requires_grad and torch.is_grad_enabled()
+    need_x = x.requires_grad and torch.is_grad_enabled()
+    need = need_phi or need_x
+    gphi = torch.zeros_like(phi) if need else torch.zeros(1, dtype=x.dtype, device=x.device)
+    gx = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
+    wp.launch(
+        K_.eikonal_kernel,
+        dim=E,
+        inputs=[to_wp(phi), _vec(x, V), _i(edges.contiguous(), wp.vec2i), T(1.0 / E), int(need)],
+        outputs=[to_wp(energy), to_wp(gphi), _vec(gx, V)],
+        device=wp_device(x),
+    )
+    value = energy.mean()
+    if not need:
+        return value
+    return _fused(value, [(phi, gphi if need_phi else None), (x, gx if need_x else None)])
+
+
+def smoothness_loss(phi: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """``mean_E (phi_u - phi_v)^2`` (method.md §5), differentiable in ``phi`` (N,)."""
+    if not isinstance(phi, torch.Tensor) or phi.ndim != 1:
+        raise ValueError(f"smoothness_loss: phi must be a (N,) float tensor, got {getattr(phi, 'shape', type(phi))}")
+    _check_edges(edges, phi.shape[0], "smoothness_loss")
+    T, V, M = _types(phi)
+    phi = phi.contiguous()
+    E = edges.shape[0]
+    if E == 0:
+        return phi.sum() * 0.0
+    energy = torch.empty(E, dtype=phi.dtype, device=phi.device)
+    need = phi.requires_grad and torch.is_grad_enabled()
+    g = torch.zeros_like(phi) if need else torch.zeros(1, dtype=phi.dtype, device=phi.device)
+    wp.launch(
+        K_.smoothness_kernel,
+        dim=E,
+        inputs=[to_wp(phi), _i(edges.contiguous(), wp.vec2i), T(1.0 / E), int(need)],
+        outputs=[to_wp(energy), to_wp(g)],
+        device=wp_device(phi),
+    )
+    value = energy.mean()
+    if not need:
+        return value
+    return _fused(value, [(phi, g)])

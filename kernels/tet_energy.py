@@ -1,0 +1,371 @@
+"""Warp kernels for the tetrahedral energies of the geometry stage (method.md §5, §6).
+
+Every kernel is generic over the scalar type and is compiled for float32 and float64 (the
+float64 overloads serve the finite-difference oracle tests; the optimiser runs float32).
+Backward passes are hand-written, so all kernels are built without Warp's adjoints
+(``enable_backward=False``); the torch autograd wrappers in ``holowarp.ops.tet_energy``
+launch them.
+
+Conventions (method.md §1, §6):
+
+- ``tets`` (M,) ``vec4i``; ``Ds = [x1-x0, x2-x0, x3-x0]`` (columns), ``F = Ds Dm^-1`` with
+  ``Dm`` the same matrix at the rest positions.
+- ``adjacency`` (M,) ``vec4i``: ``adjacency[e][k]`` is the tet across the face opposite local
+  vertex ``k``, ``-1`` on the boundary. The face-adjacency graph Laplacian is
+  ``L_ee = #neighbours``, ``L_ee' = -1`` for face neighbours; it is symmetric, so the
+  backward pass of ``||L F||^2`` applies ``L`` once more.
+- Per-element outputs are written to arrays and summed by the caller, so no kernel funnels
+  every thread through one atomic scalar (that serialises on GPUs).
+
+No torch import here (style.md: ``kernels/`` is Warp + NumPy only).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+__all__ = [
+    "deformation_gradient_kernel",
+    "deformation_gradient_backward_kernel",
+    "biharmonic_forward_kernel",
+    "biharmonic_backward_kernel",
+    "inversion_penalty_kernel",
+    "hc_umbrella_kernel",
+    "hc_face_normal_kernel",
+    "hc_target_kernel",
+    "hc_energy_kernel",
+    "eikonal_kernel",
+    "smoothness_kernel",
+    "scale_vec3_kernel",
+]
+
+
+@wp.func
+def _ds_matrix(x: wp.array(dtype=Any), t: wp.vec4i):
+    x0 = x[t[0]]
+    return wp.matrix_from_cols(x[t[1]] - x0, x[t[2]] - x0, x[t[3]] - x0)
+
+
+@wp.func
+def _scatter_ds_grad(grad_x: wp.array(dtype=Any), t: wp.vec4i, g_ds: Any):
+    # d(Ds)/dx: column k of Ds is x_{k+1} - x0, so x0 receives minus the column sum.
+    gt = wp.transpose(g_ds)
+    g1 = gt[0]
+    g2 = gt[1]
+    g3 = gt[2]
+    wp.atomic_add(grad_x, t[1], g1)
+    wp.atomic_add(grad_x, t[2], g2)
+    wp.atomic_add(grad_x, t[3], g3)
+    wp.atomic_sub(grad_x, t[0], g1 + g2 + g3)
+
+
+@wp.kernel(enable_backward=False)
+def deformation_gradient_kernel(
+    x: wp.array(dtype=Any),  # [N] vec3
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    dm_inv: wp.array(dtype=Any),  # [M] mat33
+    F: wp.array(dtype=Any),  # [M] mat33, out
+):
+    e = wp.tid()
+    F[e] = _ds_matrix(x, tets[e]) * dm_inv[e]
+
+
+@wp.kernel(enable_backward=False)
+def deformation_gradient_backward_kernel(
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    dm_inv: wp.array(dtype=Any),  # [M] mat33
+    grad_F: wp.array(dtype=Any),  # [M] mat33
+    grad_x: wp.array(dtype=Any),  # [N] vec3, accumulated
+):
+    e = wp.tid()
+    # F = Ds Dm^-1  =>  dE/dDs = dE/dF Dm^-T
+    _scatter_ds_grad(grad_x, tets[e], grad_F[e] * wp.transpose(dm_inv[e]))
+
+
+@wp.kernel(enable_backward=False)
+def biharmonic_forward_kernel(
+    F: wp.array(dtype=Any),  # [M] mat33
+    adjacency: wp.array(dtype=wp.vec4i),  # [M]
+    weights: wp.array(dtype=Any),  # [M]
+    LF: wp.array(dtype=Any),  # [M] mat33, out: (L F)_e
+    energy: wp.array(dtype=Any),  # [M], out: w_e ||(L F)_e||_F^2
+):
+    e = wp.tid()
+    fe = F[e]
+    acc = fe - fe
+    a = adjacency[e]
+    deg = int(0)
+    for k in range(4):
+        n = a[k]
+        if n >= 0:
+            acc = acc + F[n]
+            deg += 1
+    w = weights[e]
+    g = fe * type(w)(deg) - acc
+    LF[e] = g
+    energy[e] = w * wp.ddot(g, g)
+
+
+@wp.kernel(enable_backward=False)
+def biharmonic_backward_kernel(
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    adjacency: wp.array(dtype=wp.vec4i),  # [M]
+    weights: wp.array(dtype=Any),  # [M]
+    LF: wp.array(dtype=Any),  # [M] mat33 from the forward pass
+    dm_inv: wp.array(dtype=Any),  # [M] mat33
+    grad_out: wp.array(dtype=Any),  # [1] dLoss/dEnergy
+    grad_x: wp.array(dtype=Any),  # [N] vec3, accumulated
+):
+    # E = sum_e w_e ||G_e||^2, G = L F  =>  dE/dF = 2 L^T (w G) = 2 L (w G) (L symmetric).
+    e = wp.tid()
+    w = weights[e]
+    wg = LF[e] * w
+    acc = wg - wg
+    a = adjacency[e]
+    deg = int(0)
+    for k in range(4):
+        n = a[k]
+        if n >= 0:
+            acc = acc + LF[n] * weights[n]
+            deg += 1
+    g_F = (wg * type(w)(deg) - acc) * (type(w)(2.0) * grad_out[0])
+    _scatter_ds_grad(grad_x, tets[e], g_F * wp.transpose(dm_inv[e]))
+
+
+@wp.kernel(enable_backward=False)
+def inversion_penalty_kernel(
+    x: wp.array(dtype=Any),  # [N] vec3
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    dm_inv: wp.array(dtype=Any),  # [M] mat33
+    p: Any,  # exponent, >= 1
+    with_grad: int,
+    energy: wp.array(dtype=Any),  # [M], out: max(-det F, 0)^p
+    grad_x: wp.array(dtype=Any),  # [N] vec3, accumulated when with_grad
+):
+    # Value and gradient in one pass: the energy is local to each tet, so the backward pass
+    # is only a rescale by dLoss/dEnergy (done by the caller).
+    e = wp.tid()
+    t = tets[e]
+    Dinv = dm_inv[e]
+    F = _ds_matrix(x, t) * Dinv
+    d = wp.determinant(F)
+    zero = type(d)(0.0)
+    if d >= zero:
+        energy[e] = zero
+        return
+    v = -d
+    energy[e] = wp.pow(v, p)
+    if with_grad == 0:
+        return
+    # d det(F)/dF = cofactor(F): column k is the cross product of the other two columns.
+    Ft = wp.transpose(F)
+    cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
+    dE_dd = -p * wp.pow(v, p - type(p)(1.0))
+    _scatter_ds_grad(grad_x, t, (cof * dE_dd) * wp.transpose(Dinv))
+
+
+# --- HC-Laplacian (Vollmer et al. 1999) on the boundary surface -------------------------
+# Surface vertices are addressed by a local index s in [0, S); ``surf_ids[s]`` is the global
+# vertex id, ``nbr_offsets``/``nbr_ids`` a CSR list of local surface neighbours.
+
+
+@wp.kernel(enable_backward=False)
+def hc_umbrella_kernel(
+    x: wp.array(dtype=Any),  # [N] vec3
+    x_orig: wp.array(dtype=Any),  # [N] vec3, o_i of Vollmer (the rest positions)
+    surf_ids: wp.array(dtype=wp.int32),  # [S]
+    nbr_offsets: wp.array(dtype=wp.int32),  # [S + 1]
+    nbr_ids: wp.array(dtype=wp.int32),  # [nnz] local ids
+    alpha: Any,
+    p_out: wp.array(dtype=Any),  # [S] vec3, umbrella average of neighbours
+    b_out: wp.array(dtype=Any),  # [S] vec3, b_i = p_i - (alpha o_i + (1 - alpha) q_i)
+):
+    s = wp.tid()
+    q = x[surf_ids[s]]
+    acc = q - q
+    start = nbr_offsets[s]
+    end = nbr_offsets[s + 1]
+    for j in range(start, end):
+        acc = acc + x[surf_ids[nbr_ids[j]]]
+    pavg = q
+    if end > start:
+        pavg = acc / type(alpha)(end - start)
+    one = type(alpha)(1.0)
+    p_out[s] = pavg
+    b_out[s] = pavg - (x_orig[surf_ids[s]] * alpha + q * (one - alpha))
+
+
+@wp.kernel(enable_backward=False)
+def hc_face_normal_kernel(
+    x: wp.array(dtype=Any),  # [N] vec3
+    faces_global: wp.array(dtype=wp.vec3i),  # [B] boundary faces, global ids, wound outward
+    faces_local: wp.array(dtype=wp.vec3i),  # [B] same faces, local surface ids
+    normal_acc: wp.array(dtype=Any),  # [S] vec3, accumulated area vectors
+):
+    f = wp.tid()
+    g = faces_global[f]
+    x0 = x[g[0]]
+    m = wp.cross(x[g[1]] - x0, x[g[2]] - x0)  # twice the area vector: area weighting
+    lf = faces_local[f]
+    wp.atomic_add(normal_acc, lf[0], m)
+    wp.atomic_add(normal_acc, lf[1], m)
+    wp.atomic_add(normal_acc, lf[2], m)
+
+
+@wp.kernel(enable_backward=False)
+def hc_target_kernel(
+    p_in: wp.array(dtype=Any),  # [S] vec3
+    b_in: wp.array(dtype=Any),  # [S] vec3
+    nbr_offsets: wp.array(dtype=wp.int32),  # [S + 1]
+    nbr_ids: wp.array(dtype=wp.int32),  # [nnz]
+    normal_acc: wp.array(dtype=Any),  # [S] vec3 area vectors
+    beta: Any,
+    target: wp.array(dtype=Any),  # [S] vec3, out
+    normal: wp.array(dtype=Any),  # [S] vec3, out: unit outward normal
+):
+    s = wp.tid()
+    bs = b_in[s]
+    acc = bs - bs
+    start = nbr_offsets[s]
+    end = nbr_offsets[s + 1]
+    for j in range(start, end):
+        acc = acc + b_in[nbr_ids[j]]
+    bbar = bs
+    if end > start:
+        bbar = acc / type(beta)(end - start)
+    one = type(beta)(1.0)
+    target[s] = p_in[s] - (bs * beta + bbar * (one - beta))
+    m = normal_acc[s]
+    ln = wp.length(m)
+    if ln > type(beta)(0.0):
+        normal[s] = m / ln
+    else:
+        normal[s] = m
+
+
+@wp.kernel(enable_backward=False)
+def hc_energy_kernel(
+    x: wp.array(dtype=Any),  # [N] vec3
+    surf_ids: wp.array(dtype=wp.int32),  # [S]
+    target: wp.array(dtype=Any),  # [S] vec3 (held constant)
+    normal: wp.array(dtype=Any),  # [S] vec3 (held constant)
+    lam_cond: Any,
+    with_grad: int,
+    energy: wp.array(dtype=Any),  # [S], out
+    grad_x: wp.array(dtype=Any),  # [N] vec3, out (each surface vertex written once)
+):
+    # d = target - x; d_n = d . n (n outward); d_t = d - d_n n.
+    # E = |d_t|^2 + lam_cond min(d_n, 0)^2 + max(d_n, 0)^2.
+    s = wp.tid()
+    i = surf_ids[s]
+    n = normal[s]
+    d = target[s] - x[i]
+    dn = wp.dot(d, n)
+    dt = d - n * dn
+    zero = type(lam_cond)(0.0)
+    neg = wp.min(dn, zero)
+    pos = wp.max(dn, zero)
+    energy[s] = wp.dot(dt, dt) + lam_cond * neg * neg + pos * pos
+    if with_grad != 0:
+        two = type(lam_cond)(2.0)
+        # dE/dd = 2 d_t + 2 (lam neg + pos) n ; dd/dx = -I (target and n are constants)
+        grad_x[i] = -(dt * two + n * (two * (lam_cond * neg + pos)))
+
+
+@wp.kernel(enable_backward=False)
+def eikonal_kernel(
+    phi: wp.array(dtype=Any),  # [N]
+    x: wp.array(dtype=Any),  # [N] vec3
+    edges: wp.array(dtype=wp.vec2i),  # [E]
+    inv_count: Any,  # 1 / E (the loss is a mean)
+    with_grad: int,
+    energy: wp.array(dtype=Any),  # [E], out: (|dphi| / l - 1)^2
+    grad_phi: wp.array(dtype=Any),  # [N], accumulated, already divided by E
+    grad_x: wp.array(dtype=Any),  # [N] vec3, accumulated, already divided by E
+):
+    k = wp.tid()
+    uv = edges[k]
+    u = uv[0]
+    v = uv[1]
+    dphi = phi[u] - phi[v]
+    dx = x[u] - x[v]
+    zero = type(inv_count)(0.0)
+    l = wp.max(wp.length(dx), type(inv_count)(1.0e-12))
+    a = wp.abs(dphi)
+    r = a / l - type(inv_count)(1.0)
+    energy[k] = r * r
+    if with_grad == 0:
+        return
+    c = type(inv_count)(2.0) * r * inv_count
+    sgn = zero
+    if dphi > zero:
+        sgn = type(inv_count)(1.0)
+    elif dphi < zero:
+        sgn = type(inv_count)(-1.0)
+    gp = c * sgn / l
+    wp.atomic_add(grad_phi, u, gp)
+    wp.atomic_sub(grad_phi, v, gp)
+    # d(a / l)/d x_u = -a / l^2 * dx / l
+    gx = dx * (-c * a / (l * l * l))
+    wp.atomic_add(grad_x, u, gx)
+    wp.atomic_sub(grad_x, v, gx)
+
+
+@wp.kernel(enable_backward=False)
+def smoothness_kernel(
+    phi: wp.array(dtype=Any),  # [N]
+    edges: wp.array(dtype=wp.vec2i),  # [E]
+    inv_count: Any,
+    with_grad: int,
+    energy: wp.array(dtype=Any),  # [E], out: (phi_u - phi_v)^2
+    grad_phi: wp.array(dtype=Any),  # [N], accumulated, already divided by E
+):
+    k = wp.tid()
+    uv = edges[k]
+    d = phi[uv[0]] - phi[uv[1]]
+    energy[k] = d * d
+    if with_grad != 0:
+        g = type(inv_count)(2.0) * d * inv_count
+        wp.atomic_add(grad_phi, uv[0], g)
+        wp.atomic_sub(grad_phi, uv[1], g)
+
+
+@wp.kernel(enable_backward=False)
+def scale_vec3_kernel(
+    src: wp.array(dtype=Any),  # [N] vec3
+    scale: wp.array(dtype=Any),  # [1]
+    dst: wp.array(dtype=Any),  # [N] vec3, out
+):
+    i = wp.tid()
+    dst[i] = src[i] * scale[0]
+
+
+# --- explicit float32 / float64 overloads (compiled together with the module) -----------
+
+
+def _register_overloads():
+    for T, V, M in ((wp.float32, wp.vec3f, wp.mat33f), (wp.float64, wp.vec3d, wp.mat33d)):
+        aV, aM, aT = wp.array(dtype=V), wp.array(dtype=M), wp.array(dtype=T)
+        a4, a3, a2, ai = (
+            wp.array(dtype=wp.vec4i),
+            wp.array(dtype=wp.vec3i),
+            wp.array(dtype=wp.vec2i),
+            wp.array(dtype=wp.int32),
+        )
+        wp.overload(deformation_gradient_kernel, [aV, a4, aM, aM])
+        wp.overload(deformation_gradient_backward_kernel, [a4, aM, aM, aV])
+        wp.overload(biharmonic_forward_kernel, [aM, a4, aT, aM, aT])
+        wp.overload(biharmonic_backward_kernel, [a4, a4, aT, aM, aM, aT, aV])
+        wp.overload(inversion_penalty_kernel, [aV, a4, aM, T, wp.int32, aT, aV])
+        wp.overload(hc_umbrella_kernel, [aV, aV, ai, ai, ai, T, aV, aV])
+        wp.overload(hc_face_normal_kernel, [aV, a3, a3, aV])
+        wp.overload(hc_target_kernel, [aV, aV, ai, ai, aV, T, aV, aV])
+        wp.overload(hc_energy_kernel, [aV, ai, aV, aV, T, wp.int32, aT, aV])
+        wp.overload(eikonal_kernel, [aT, aV, a2, T, wp.int32, aT, aT, aV])
+        wp.overload(smoothness_kernel, [aT, a2, T, wp.int32, aT, aT])
+        wp.overload(scale_vec3_kernel, [aV, aT, aV])
+
+
+_register_overloads()
