@@ -230,10 +230,9 @@ class GTRenderer:
             dict of NumPy arrays ``rgba`` (H, W, 4), ``normal`` (H, W, 3), ``depth`` (H, W),
             ``mask`` (H, W) float32 and ``face`` (H, W) int32.
         """
-        out = self.render_async(viewmat, K, width, height, supersample=supersample)
-        return {k: (v.numpy() if hasattr(v, "numpy") else v) for k, v in out.items()} | {
-            "mask": out["rgba"].numpy()[..., 3].copy()
-        }
+        out = {k: v.numpy() for k, v in self.render_async(viewmat, K, width, height, supersample=supersample).items()}
+        out["mask"] = out["rgba"][..., 3].copy()
+        return out
 
     def render_async(self, viewmat, K, width: int, height: int, *, supersample: int | None = None) -> dict:
         """Launch one view and return the Warp output arrays (no host copy, no sync)."""

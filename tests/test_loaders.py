@@ -311,3 +311,17 @@ def test_synth_resume_keeps_existing_views(synth_box, tmp_path):
     s = synthesize(obj, dst, views=VIEWS, res=RES, resume=True, progress=False)
     assert s["rendered"] == 1 and (dst / "train" / "r_7.png").is_file()
     assert isinstance(load_dataset(dst), Dataset)
+
+
+@pytest.mark.parametrize("name,euler", [("spot", 2), ("bob", 0)])
+def test_shared_textured_objs_weld_into_closed_surfaces(name, euler):
+    from conftest import shared_mesh
+
+    m = load_obj(shared_mesh(name))
+    assert m.textured
+    w = m.welded()
+    f = w.faces.astype(np.int64)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(e, axis=0, return_counts=True)
+    assert (counts == 2).all()  # closed, edge-manifold once the seams are welded
+    assert len(np.unique(f)) - len(counts) + len(f) == euler  # spot genus 0, bob genus 1

@@ -323,6 +323,7 @@ def main(argv=None) -> int:
     p.add_argument("--grid", type=int, default=128, help="carving nodes along the hull's longest side (default 128)")
     p.add_argument("--res", type=int, default=None, help="load the dataset at this resolution (longer side)")
     p.add_argument("--edge-length-fac", type=float, default=VisualHullSettings.edge_length_fac, help="fTetWild ideal edge length / bbox diagonal")
+    p.add_argument("--max-surface-faces", type=int, default=VisualHullSettings.max_surface_faces, help="decimate the marching-cubes surface to this many triangles before fTetWild")
     p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
@@ -333,7 +334,7 @@ def main(argv=None) -> int:
 
     try:
         ds = load_dataset(args.dataset, res=args.res)
-        st = VisualHullSettings(grid=args.grid, edge_length_fac=args.edge_length_fac)
+        st = VisualHullSettings(grid=args.grid, edge_length_fac=args.edge_length_fac, max_surface_faces=args.max_surface_faces)
         rep = run_visual_hull(ds, args.out, settings=st, device=args.device, progress=not args.quiet)
     except (DatasetError, DeviceError, VisualHullError, MeshIOError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -1,0 +1,241 @@
+"""Metrics of method.md §9 against analytic oracles: concentric and shifted spheres, nested
+cubes, a cube's 12 edges, PSNR of identical images, the winding-number inside test; plus the
+exact-keys contract of ``evaluate_mesh`` and ``python -m holowarp.evaluate``."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from holowarp.metrics import (
+    METRIC_KEYS,
+    chamfer_metrics,
+    edge_metrics,
+    edge_sample_mask,
+    evaluate_mesh,
+    inside_mask,
+    mask_psnr,
+    normalize_to_unit_cube,
+    psnr,
+    sample_surface,
+    unit_cube_transform,
+)
+
+N = 50_000
+
+
+def _sphere(radius, centre=(0.0, 0.0, 0.0), subdivisions=5):
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(s.vertices) + np.asarray(centre), np.asarray(s.faces)
+
+
+def _cube(side, centre=(0.0, 0.0, 0.0)):
+    import trimesh
+
+    b = trimesh.creation.box(extents=(side, side, side))
+    return np.asarray(b.vertices) + np.asarray(centre), np.asarray(b.faces)
+
+
+def test_sampling_is_area_weighted_and_on_the_surface(rng):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0], [3, 0, 1.0], [0, 2, 1.0]])
+    f = np.array([[0, 1, 2], [3, 4, 5]])  # areas 0.5 and 3: ratio 1 : 6
+    p, n, fi = sample_surface(v, f, 70_000, rng=rng)
+    assert abs(np.mean(fi == 0) - 1 / 7) < 0.005
+    np.testing.assert_allclose(p[fi == 0, 2], 0)
+    np.testing.assert_allclose(p[fi == 1, 2], 1)
+    assert (p[fi == 0, :2].sum(1) <= 1 + 1e-12).all() and (p[fi == 1, 0] / 3 + p[fi == 1, 1] / 2 <= 1 + 1e-12).all()
+    np.testing.assert_allclose(n, np.tile([0, 0, 1.0], (len(n), 1)))
+
+
+def test_concentric_spheres_give_chamfer_equal_to_the_radius_gap(rng):
+    gv, gf = _sphere(0.5)
+    pv, pf = _sphere(0.45)
+    m = evaluate_mesh((pv, pf), (gv, gf), num_samples=N, seed=int(rng.integers(1 << 30)))
+    s, _ = unit_cube_transform(gv)
+    gap = 0.05 * s
+    assert m["chamfer_l1"] == pytest.approx(gap, rel=0.01)
+    assert m["chamfer_l2"] == pytest.approx(gap**2, rel=0.02)
+    # The max of nearest-SAMPLE distances sits a little above the surface gap (sparsest spot).
+    assert gap * 0.99 < m["hausdorff"] < gap * 1.1
+    assert m["precision"] == 0 and m["recall"] == 0 and m["f_score"] == 0
+    assert m["normal_consistency"] > 0.999
+    assert m["volume_iou"] == pytest.approx(0.9**3, abs=0.01)
+    assert all(m[k] is None for k in METRIC_KEYS[11:])  # a surface has no tets
+
+
+def test_shifted_sphere_gives_the_known_chamfer_and_lens_iou(rng):
+    r, delta = 0.5, 0.1
+    gv, gf = _sphere(r)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    m = evaluate_mesh((gv + delta * direction, gf), (gv, gf), num_samples=N, seed=int(rng.integers(1 << 30)))
+    s, _ = unit_cube_transform(gv)
+    # Distance from the shifted copy to the sphere: |sqrt(r^2 + 2 r delta u + delta^2) - r|,
+    # u = cos(angle to the shift) uniform in [-1, 1] by area (and the same the other way).
+    u = np.linspace(-1, 1, 200_001)
+    d = np.abs(np.sqrt(r * r + 2 * r * delta * u + delta * delta) - r)
+    assert m["chamfer_l1"] == pytest.approx(d.mean() * s, rel=0.02)
+    assert m["chamfer_l2"] == pytest.approx((d**2).mean() * s * s, rel=0.02)
+    assert delta * s * 0.99 < m["hausdorff"] < delta * s * 1.1
+    lens = math.pi * (4 * r + delta) * (2 * r - delta) ** 2 / 12
+    ball = 4 / 3 * math.pi * r**3
+    assert m["volume_iou"] == pytest.approx(lens / (2 * ball - lens), abs=0.01)
+
+
+def test_nested_cubes_give_known_iou_chamfer_and_tet_quality():
+    from holowarp.primitives import box_tetmesh
+
+    a = 0.6  # inner cube side; GT cube side 1 is already the evaluation frame
+    inner = box_tetmesh((4, 4, 4), size=(a, a, a), origin=(-a / 2, -a / 2, -a / 2))
+    m = evaluate_mesh(inner, _cube(1.0), num_samples=N, seed=3)
+    assert list(m) == list(METRIC_KEYS)
+    assert m["volume_iou"] == pytest.approx(a**3, abs=0.006)
+    # pred -> gt: every inner point is exactly 0.2 from the parallel outer face.
+    # gt -> pred: sqrt(0.2^2 + excess_y^2 + excess_z^2) averaged over an outer face.
+    g = (np.arange(2000) + 0.5) / 2000 - 0.5
+    ex = np.clip(np.abs(g) - a / 2, 0, None)
+    d_g = np.sqrt(0.2**2 + ex[:, None] ** 2 + ex[None, :] ** 2)
+    assert m["chamfer_l1"] == pytest.approx(0.5 * (0.2 + d_g.mean()), rel=0.005)
+    assert m["chamfer_l2"] == pytest.approx(0.5 * (0.04 + (d_g**2).mean()), rel=0.005)
+    assert m["hausdorff"] == pytest.approx(math.sqrt(3) * 0.2, abs=0.01)
+    assert m["components"] == 1 and m["manifold"] is True and m["genus"] == 0
+    assert m["tets"] == 6 * 4**3 and m["inverted_ratio"] == 0
+    # Kuhn tets of a cube: smallest dihedral 45 degrees, aspect ratio 1 + 1/sqrt(2).
+    assert m["min_dihedral_mean"] == pytest.approx(45.0) and m["min_dihedral_worst"] == pytest.approx(45.0)
+    assert m["aspect_ratio_mean"] == pytest.approx(1 + 1 / math.sqrt(2))
+
+
+def test_inverted_tets_are_counted_on_the_mesh_as_given():
+    from holowarp import TetMesh
+    from holowarp.primitives import box_tetmesh
+
+    box = box_tetmesh((2, 2, 2))
+    t = box.tets.copy()
+    t[:5] = t[:5][:, [0, 1, 3, 2]]
+    m = evaluate_mesh(TetMesh(box.vertices, t), _cube(1.0, (0.5, 0.5, 0.5)), num_samples=5000, volume_points=20_000)
+    assert m["inverted_ratio"] == pytest.approx(5 / len(t))
+    assert m["volume_iou"] == pytest.approx(1.0, abs=0.01)  # geometry is unchanged
+
+
+def test_edge_samples_find_the_twelve_cube_edges_and_none_on_a_sphere(rng):
+    v, f = _cube(1.0)
+    p, n, _ = sample_surface(v, f, 100_000, rng=rng)
+    e = p[edge_sample_mask(p, n)]
+    # Distance to the nearest cube edge: the two smallest |coord| - 0.5 gaps.
+    gaps = np.sort(np.abs(np.abs(e) - 0.5), axis=1)
+    assert np.sqrt(gaps[:, 0] ** 2 + gaps[:, 1] ** 2).max() <= 0.004 + 1e-9
+    # Which edge: the axis along which the sample is NOT at a face, and the signs of the others.
+    along = np.argmax(np.abs(np.abs(e) - 0.5), axis=1)
+    keys = set()
+    for q, ax in zip(e, along):
+        others = [k for k in range(3) if k != ax]
+        keys.add((ax,) + tuple(np.sign(q[others]).astype(int)))
+    assert len(keys) == 12
+    sv, sf = _sphere(0.5, subdivisions=4)
+    ps, ns, _ = sample_surface(sv, sf, 100_000, rng=rng)
+    assert not edge_sample_mask(ps, ns).any()
+
+
+def test_edge_precision_recall_count_edge_samples_within_tau():
+    # Two sharp "edges" along x: pairs of samples 0.002 apart with perpendicular normals.
+    xs = np.arange(0, 1, 0.001)
+
+    def edge(y):
+        pts = np.concatenate([np.stack([xs, np.full_like(xs, y), np.zeros_like(xs)], 1),
+                              np.stack([xs, np.full_like(xs, y + 0.002), np.zeros_like(xs)], 1)])
+        nrm = np.concatenate([np.tile([0, 0, 1.0], (len(xs), 1)), np.tile([0, 1.0, 0], (len(xs), 1))])
+        return pts, nrm
+
+    g1, gn1 = edge(0.0)
+    g2, gn2 = edge(0.5)
+    gt = np.concatenate([g1, g2]), np.concatenate([gn1, gn2])
+    p1, pn1 = edge(0.003)  # within tau = 0.005 of gt edge 1
+    p2, pn2 = edge(0.8)  # 0.3 away from everything
+    pred = np.concatenate([p1, p2]), np.concatenate([pn1, pn2])
+    em = edge_metrics(pred[0], pred[1], gt[0], gt[1])
+    assert em["edge_precision"] == pytest.approx(0.5)
+    assert em["edge_recall"] == pytest.approx(0.5)
+    assert em["edge_f1"] == pytest.approx(0.5)
+    flat = np.tile([0, 0, 1.0], (len(p1), 1))  # same points, one normal: no edge samples
+    none = edge_metrics(p1, flat, gt[0], gt[1])
+    assert math.isnan(none["edge_precision"]) and none["edge_recall"] == 0 and none["edge_f1"] == 0
+
+
+def test_chamfer_metrics_of_identical_samples_are_perfect(rng):
+    p, n, _ = sample_surface(*_sphere(0.5, subdivisions=3), 5000, rng=rng)
+    m = chamfer_metrics(p, n, p, n)
+    assert m["chamfer_l1"] == 0 and m["hausdorff"] == 0 and m["f_score"] == 1 and m["normal_consistency"] == pytest.approx(1)
+
+
+def test_identical_images_give_infinite_psnr_and_offsets_the_known_value(rng):
+    img = rng.random((2, 8, 9, 3))
+    assert psnr(img, img.copy()) == math.inf
+    assert psnr(np.full((4, 4), 0.3), np.full((4, 4), 0.4)) == pytest.approx(20.0)
+    m = rng.random((3, 5, 5))
+    assert mask_psnr(m, m) == math.inf
+    m2 = m.copy()
+    m2[0, 0, 0] += 0.5 if m2[0, 0, 0] < 0.5 else -0.5  # one pixel of 75 off by 0.5
+    assert mask_psnr(m2, m) == pytest.approx(10 * math.log10(75 / 0.25))
+
+
+def test_winding_inside_test_matches_the_analytic_ball_even_with_holes(rng):
+    v, f = _sphere(0.5, subdivisions=4)
+    pts = rng.uniform(-0.7, 0.7, (20_000, 3))
+    r = np.linalg.norm(pts, axis=1)
+    clear = np.abs(r - 0.5) > 5e-3
+    ins = inside_mask(v, f, pts)
+    np.testing.assert_array_equal(ins[clear], (r < 0.5)[clear])
+    holey = f[rng.permutation(len(f))[:-20]]  # drop 20 faces: no longer watertight
+    ins2 = inside_mask(v, holey, pts)
+    assert np.mean(ins2[clear] == (r < 0.5)[clear]) > 0.995
+
+
+def test_unit_cube_normalisation_centres_and_scales_by_the_reference():
+    ref = np.array([[1.0, 2.0, 3.0], [3.0, 3.0, 4.0]])
+    out = normalize_to_unit_cube(ref, ref)
+    np.testing.assert_allclose(out, [[-0.5, -0.25, -0.25], [0.5, 0.25, 0.25]])
+    np.testing.assert_allclose(normalize_to_unit_cube([[2.0, 2.5, 3.5]], ref), [[0, 0, 0]])
+
+
+def test_evaluate_command_writes_exactly_the_contract_keys(tmp_path, capsys):
+    from holowarp import write_tetmesh
+    from holowarp.data.obj import write_obj
+    from holowarp.evaluate import main
+    from holowarp.primitives import box_tetmesh
+
+    write_tetmesh(tmp_path / "pred.vtu", box_tetmesh((3, 3, 3), size=(0.8, 0.8, 0.8), origin=(-0.4, -0.4, -0.4)))
+    write_obj(tmp_path / "gt.obj", *_cube(1.0))
+    out = tmp_path / "m.json"
+    rc = main([str(tmp_path / "pred.vtu"), "--gt", str(tmp_path / "gt.obj"), "--json", str(out), "--samples", "5000"])
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    assert list(doc) == list(METRIC_KEYS)
+    assert doc["components"] == 1 and doc["tets"] == 6 * 27
+    text = capsys.readouterr().out
+    assert "Chamfer-L1" in text and "LPIPS" in text
+    assert main([str(tmp_path / "missing.vtu"), "--gt", str(tmp_path / "gt.obj")]) == 2
+    assert "missing.vtu" in capsys.readouterr().err
+
+
+def test_evaluate_with_dataset_adds_silhouette_psnr(tmp_path):
+    from holowarp.data import load_dataset
+    from holowarp.data.obj import write_obj
+    from holowarp.data.synth import synthesize
+    from holowarp.primitives import box_tetmesh
+
+    write_obj(tmp_path / "cube.obj", *_cube(2.0))
+    synthesize(tmp_path / "cube.obj", tmp_path / "ds", views=20, res=32, up_axis="z", progress=False)
+    ds = load_dataset(tmp_path / "ds")
+    exact = box_tetmesh((2, 2, 2), size=(1, 1, 1), origin=(-0.5, -0.5, -0.5))
+    smaller = box_tetmesh((2, 2, 2), size=(0.8, 0.8, 0.8), origin=(-0.4, -0.4, -0.4))
+    m1 = evaluate_mesh(exact, ds.gt_mesh, dataset=ds, num_samples=5000, volume_points=20_000)
+    m2 = evaluate_mesh(smaller, ds.gt_mesh, dataset=ds, num_samples=5000, volume_points=20_000)
+    assert list(m1) == list(METRIC_KEYS) + ["psnr_mask"]
+    assert m1["psnr_mask"] > 40 and m2["psnr_mask"] < 20
+    # 5000 samples on a unit cube: the chamfer floor is the sample spacing (~0.017).
+    assert m1["chamfer_l1"] < 0.025 < m2["chamfer_l1"] and m1["volume_iou"] > 0.99
