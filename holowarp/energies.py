@@ -184,7 +184,7 @@ class TetEnergies:
         if ok.any():
             dm_inv[ok] = np.linalg.inv(Dm[ok])
         if self._placeholder:
-            self._mesh = TetMesh(v, self._mesh.tets, validate=False)
+            self._mesh = TetMesh(v.copy(), self._mesh.tets, validate=False)  # TetMesh freezes its array
             self._placeholder = False
             self._hc_cache = None
         self.rest_vertices = torch.as_tensor(v, device=self.device)
@@ -302,4 +302,4 @@ class TetEnergies:
 def _np64(v) -> np.ndarray:
     if isinstance(v, torch.Tensor):
         v = v.detach().cpu().numpy()
-    return np.asarray(v, dtype=np.float64)
+    return np.array(v, dtype=np.float64)  # a writable copy (TetMesh arrays are read-only)
