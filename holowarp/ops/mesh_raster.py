@@ -21,6 +21,7 @@ vertex closer than ``near`` to the camera plane are skipped.
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
@@ -37,6 +38,13 @@ __all__ = ["rasterize_mesh", "mesh_face_neighbors", "DEFAULT_TILE_SIZE", "DEFAUL
 DEFAULT_TILE_SIZE = 8
 #: Faces with a vertex closer than this to the camera plane (camera z, metres) are skipped.
 DEFAULT_NEAR = 1.0e-3
+
+
+def _stream(t: torch.Tensor):
+    """Run Warp launches on torch's current CUDA stream, so they order with torch's work."""
+    if t.device.type == "cuda":
+        return wp.ScopedStream(wp.stream_from_torch(t.device))
+    return contextlib.nullcontext()
 
 
 def mesh_face_neighbors(faces: torch.Tensor) -> torch.Tensor:
@@ -191,6 +199,11 @@ class _RasterizeMesh(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_alpha, g_normal, _g_depth, _g_face_id):
+        with _stream(ctx.saved_tensors[0]):
+            return _RasterizeMesh._backward(ctx, g_alpha, g_normal)
+
+    @staticmethod
+    def _backward(ctx, g_alpha, g_normal):
         vertices, faces, winner, face_id = ctx.saved_tensors
         pc, uv, R, Kmat, W, H = ctx.raster
         dev = wp_device(vertices)
@@ -309,7 +322,8 @@ def rasterize_mesh(
             "depth": torch.zeros((height, width), dtype=torch.float32, device=dev),
             "face_id": torch.full((height, width), -1, dtype=torch.int32, device=dev),
         }
-    alpha, normal, depth, face_id = _RasterizeMesh.apply(
-        x.contiguous(), faces, neighbors, R, t, Kw, width, height, tile_size, float(near)
-    )
+    with _stream(x):
+        alpha, normal, depth, face_id = _RasterizeMesh.apply(
+            x.contiguous(), faces, neighbors, R, t, Kw, width, height, tile_size, float(near)
+        )
     return {"alpha": alpha, "normal": normal, "depth": depth, "face_id": face_id}

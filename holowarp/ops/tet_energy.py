@@ -13,6 +13,7 @@ inverse rest edge matrices; ``adjacency`` (M, 4) int32 face neighbours (-1 on th
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +39,13 @@ _TYPES = {
     torch.float32: (wp.float32, wp.vec3f, wp.mat33f),
     torch.float64: (wp.float64, wp.vec3d, wp.mat33d),
 }
+
+
+def _stream(t: torch.Tensor):
+    """Run Warp launches on torch's current CUDA stream, so they order with torch's work."""
+    if t.device.type == "cuda":
+        return wp.ScopedStream(wp.stream_from_torch(t.device))
+    return contextlib.nullcontext()
 
 
 def _types(t: torch.Tensor):
@@ -74,13 +82,14 @@ class _DeformationGradient(torch.autograd.Function):
         T, V, M = _types(x)
         dev = wp_device(x)
         F = torch.empty((tets.shape[0], 3, 3), dtype=x.dtype, device=x.device)
-        wp.launch(
-            K_.deformation_gradient_kernel,
-            dim=tets.shape[0],
-            inputs=[_vec(x, V), _i(tets, wp.vec4i), _mat(dm_inv, M)],
-            outputs=[_mat(F, M)],
-            device=dev,
-        )
+        with _stream(x):
+            wp.launch(
+                K_.deformation_gradient_kernel,
+                dim=tets.shape[0],
+                inputs=[_vec(x, V), _i(tets, wp.vec4i), _mat(dm_inv, M)],
+                outputs=[_mat(F, M)],
+                device=dev,
+            )
         ctx.save_for_backward(tets, dm_inv)
         ctx.num_vertices = x.shape[0]
         return F
@@ -90,13 +99,14 @@ class _DeformationGradient(torch.autograd.Function):
         tets, dm_inv = ctx.saved_tensors
         T, V, M = _types(dm_inv)
         grad_x = torch.zeros((ctx.num_vertices, 3), dtype=dm_inv.dtype, device=dm_inv.device)
-        wp.launch(
-            K_.deformation_gradient_backward_kernel,
-            dim=tets.shape[0],
-            inputs=[_i(tets, wp.vec4i), _mat(dm_inv, M), _mat(grad_F.to(dm_inv.dtype).contiguous(), M)],
-            outputs=[_vec(grad_x, V)],
-            device=wp_device(dm_inv),
-        )
+        with _stream(dm_inv):
+            wp.launch(
+                K_.deformation_gradient_backward_kernel,
+                dim=tets.shape[0],
+                inputs=[_i(tets, wp.vec4i), _mat(dm_inv, M), _mat(grad_F.to(dm_inv.dtype).contiguous(), M)],
+                outputs=[_vec(grad_x, V)],
+                device=wp_device(dm_inv),
+            )
         return grad_x, None, None
 
 
@@ -122,14 +132,15 @@ class _Biharmonic(torch.autograd.Function):
         LF = torch.empty_like(F)
         energy = torch.empty(m, dtype=x.dtype, device=x.device)
         tets_wp, adj_wp = _i(tets, wp.vec4i), _i(adjacency, wp.vec4i)
-        wp.launch(
-            K_.deformation_gradient_kernel, dim=m,
-            inputs=[_vec(x, V), tets_wp, _mat(dm_inv, M)], outputs=[_mat(F, M)], device=dev,
-        )
-        wp.launch(
-            K_.biharmonic_forward_kernel, dim=m,
-            inputs=[_mat(F, M), adj_wp, to_wp(weights)], outputs=[_mat(LF, M), to_wp(energy)], device=dev,
-        )
+        with _stream(x):
+            wp.launch(
+                K_.deformation_gradient_kernel, dim=m,
+                inputs=[_vec(x, V), tets_wp, _mat(dm_inv, M)], outputs=[_mat(F, M)], device=dev,
+            )
+            wp.launch(
+                K_.biharmonic_forward_kernel, dim=m,
+                inputs=[_mat(F, M), adj_wp, to_wp(weights)], outputs=[_mat(LF, M), to_wp(energy)], device=dev,
+            )
         ctx.save_for_backward(tets, adjacency, weights, LF, dm_inv)
         ctx.num_vertices = x.shape[0]
         return energy.sum()
@@ -140,13 +151,14 @@ class _Biharmonic(torch.autograd.Function):
         T, V, M = _types(LF)
         grad_x = torch.zeros((ctx.num_vertices, 3), dtype=LF.dtype, device=LF.device)
         g = grad_E.reshape(1).to(LF.dtype).contiguous()
-        wp.launch(
-            K_.biharmonic_backward_kernel,
-            dim=tets.shape[0],
-            inputs=[_i(tets, wp.vec4i), _i(adjacency, wp.vec4i), to_wp(weights), _mat(LF, M), _mat(dm_inv, M), to_wp(g)],
-            outputs=[_vec(grad_x, V)],
-            device=wp_device(LF),
-        )
+        with _stream(LF):
+            wp.launch(
+                K_.biharmonic_backward_kernel,
+                dim=tets.shape[0],
+                inputs=[_i(tets, wp.vec4i), _i(adjacency, wp.vec4i), to_wp(weights), _mat(LF, M), _mat(dm_inv, M), to_wp(g)],
+                outputs=[_vec(grad_x, V)],
+                device=wp_device(LF),
+            )
         return grad_x, None, None, None, None
 
 
@@ -210,13 +222,14 @@ def inversion_penalty(x, tets, dm_inv, p: float = 2.0) -> torch.Tensor:
     energy = torch.empty(m, dtype=x.dtype, device=x.device)
     need = x.requires_grad and torch.is_grad_enabled()
     grad_x = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
-    wp.launch(
-        K_.inversion_penalty_kernel,
-        dim=m,
-        inputs=[_vec(x, V), _i(tets.contiguous(), wp.vec4i), _mat(dm_inv.to(x.dtype).contiguous(), M), T(p), int(need)],
-        outputs=[to_wp(energy), _vec(grad_x, V)],
-        device=wp_device(x),
-    )
+    with _stream(x):
+        wp.launch(
+            K_.inversion_penalty_kernel,
+            dim=m,
+            inputs=[_vec(x, V), _i(tets.contiguous(), wp.vec4i), _mat(dm_inv.to(x.dtype).contiguous(), M), T(p), int(need)],
+            outputs=[to_wp(energy), _vec(grad_x, V)],
+            device=wp_device(x),
+        )
     value = energy.sum()
     if not need:
         return value
@@ -304,13 +317,14 @@ def hc_targets(x, topo: HCTopology, *, x_orig=None, alpha: float = 0.0, beta: fl
     target = torch.empty_like(p)
     normal = torch.empty_like(p)
     sid, off, nid = _i(topo.surf_ids), _i(topo.nbr_offsets), _i(topo.nbr_ids)
-    wp.launch(K_.hc_umbrella_kernel, dim=S, inputs=[_vec(x, V), _vec(xo, V), sid, off, nid, T(alpha)],
-              outputs=[_vec(p, V), _vec(b, V)], device=dev)
-    wp.launch(K_.hc_face_normal_kernel, dim=topo.faces_global.shape[0],
-              inputs=[_vec(x, V), _i(topo.faces_global, wp.vec3i), _i(topo.faces_local, wp.vec3i)],
-              outputs=[_vec(nacc, V)], device=dev)
-    wp.launch(K_.hc_target_kernel, dim=S, inputs=[_vec(p, V), _vec(b, V), off, nid, _vec(nacc, V), T(beta)],
-              outputs=[_vec(target, V), _vec(normal, V)], device=dev)
+    with _stream(x):
+        wp.launch(K_.hc_umbrella_kernel, dim=S, inputs=[_vec(x, V), _vec(xo, V), sid, off, nid, T(alpha)],
+                  outputs=[_vec(p, V), _vec(b, V)], device=dev)
+        wp.launch(K_.hc_face_normal_kernel, dim=topo.faces_global.shape[0],
+                  inputs=[_vec(x, V), _i(topo.faces_global, wp.vec3i), _i(topo.faces_local, wp.vec3i)],
+                  outputs=[_vec(nacc, V)], device=dev)
+        wp.launch(K_.hc_target_kernel, dim=S, inputs=[_vec(p, V), _vec(b, V), off, nid, _vec(nacc, V), T(beta)],
+                  outputs=[_vec(target, V), _vec(normal, V)], device=dev)
     return target, normal
 
 
@@ -336,14 +350,15 @@ def hc_energy(x, topo: HCTopology, target, normal, lam_cond: float) -> torch.Ten
     energy = torch.empty(S, dtype=x.dtype, device=x.device)
     need = x.requires_grad and torch.is_grad_enabled()
     grad_x = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
-    wp.launch(
-        K_.hc_energy_kernel,
-        dim=S,
-        inputs=[_vec(x, V), _i(topo.surf_ids), _vec(target.detach().to(x.dtype).contiguous(), V),
-                _vec(normal.detach().to(x.dtype).contiguous(), V), T(float(lam_cond)), int(need)],
-        outputs=[to_wp(energy), _vec(grad_x, V)],
-        device=wp_device(x),
-    )
+    with _stream(x):
+        wp.launch(
+            K_.hc_energy_kernel,
+            dim=S,
+            inputs=[_vec(x, V), _i(topo.surf_ids), _vec(target.detach().to(x.dtype).contiguous(), V),
+                    _vec(normal.detach().to(x.dtype).contiguous(), V), T(float(lam_cond)), int(need)],
+            outputs=[to_wp(energy), _vec(grad_x, V)],
+            device=wp_device(x),
+        )
     value = energy.sum()
     if not need:
         return value
@@ -380,13 +395,14 @@ def eikonal_loss(phi: torch.Tensor, edges: torch.Tensor, x: torch.Tensor) -> tor
     need = need_phi or need_x
     gphi = torch.zeros_like(phi) if need else torch.zeros(1, dtype=x.dtype, device=x.device)
     gx = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
-    wp.launch(
-        K_.eikonal_kernel,
-        dim=E,
-        inputs=[to_wp(phi), _vec(x, V), _i(edges.contiguous(), wp.vec2i), T(1.0 / E), int(need)],
-        outputs=[to_wp(energy), to_wp(gphi), _vec(gx, V)],
-        device=wp_device(x),
-    )
+    with _stream(x):
+        wp.launch(
+            K_.eikonal_kernel,
+            dim=E,
+            inputs=[to_wp(phi), _vec(x, V), _i(edges.contiguous(), wp.vec2i), T(1.0 / E), int(need)],
+            outputs=[to_wp(energy), to_wp(gphi), _vec(gx, V)],
+            device=wp_device(x),
+        )
     value = energy.mean()
     if not need:
         return value
@@ -406,13 +422,14 @@ def smoothness_loss(phi: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     energy = torch.empty(E, dtype=phi.dtype, device=phi.device)
     need = phi.requires_grad and torch.is_grad_enabled()
     g = torch.zeros_like(phi) if need else torch.zeros(1, dtype=phi.dtype, device=phi.device)
-    wp.launch(
-        K_.smoothness_kernel,
-        dim=E,
-        inputs=[to_wp(phi), _i(edges.contiguous(), wp.vec2i), T(1.0 / E), int(need)],
-        outputs=[to_wp(energy), to_wp(g)],
-        device=wp_device(phi),
-    )
+    with _stream(phi):
+        wp.launch(
+            K_.smoothness_kernel,
+            dim=E,
+            inputs=[to_wp(phi), _i(edges.contiguous(), wp.vec2i), T(1.0 / E), int(need)],
+            outputs=[to_wp(energy), to_wp(g)],
+            device=wp_device(phi),
+        )
     value = energy.mean()
     if not need:
         return value
