@@ -270,7 +270,9 @@ def raster_kernel(
             # 1/z is affine in screen space; the barycentric weight of a vertex is the
             # (doubled) area opposite it over the (doubled) face area
             iz = inv_area2[f] * wp.dot(wp.vec3(c[1], c[2], c[0]), inv_z[f])
-            if iz > best_iz:
+            # ties (a centre on a shared edge) go to the lower face id: on GPUs the tile
+            # lists are filled in atomic order, and the output must not depend on it
+            if iz > best_iz or (iz == best_iz and best_f >= 0 and f < best_f):
                 best_iz = iz
                 best_f = f
     face_id[pix] = best_f
@@ -409,6 +411,8 @@ def antialias_kernel(
                         if inside == 1 and s > best_s:
                             better = 1
                         if inside == 0 and s < best_s:
+                            better = 1
+                        if s == best_s and f * 4 + k < best_code:  # order-independent ties
                             better = 1
                         if better != 0:
                             best_s = s

@@ -287,6 +287,42 @@ def test_moving_an_edge_outward_grows_alpha_only_at_that_edge():
     assert changed[:, 0].min() >= int(corners[:, 1].min()) - 1 and changed[:, 0].max() <= int(corners[:, 1].max()) + 1
 
 
+def test_moving_one_vertex_outward_grows_alpha_only_along_its_two_edges():
+    """Only pixels along the two edges at the vertex change, and they grow. The one
+    approximation shows at the edges' fixed ends: distances are measured to the edge's
+    line, which rotates slightly inward beyond its fixed endpoint, so a corner pixel there
+    may lose a trace of coverage (bounded below at 1% of the largest gain)."""
+    res = 48
+    K = intrinsics_from_fov(FOV, res, res)
+    V, F, corners = _square(np.array([24.3, 23.7]), 22.0, 0.3, K)
+    c = corners.mean(0)
+    k = 2
+    out = rasterize_mesh(torch.tensor(V, dtype=torch.float32), torch.as_tensor(F), np.eye(4), K, res, res)
+    V2 = V.copy()
+    step_px = 0.4 * (corners[k] - c) / np.linalg.norm(corners[k] - c)  # outward, 0.4 px
+    V2[k, :2] += step_px * 2.0 / K[0, 0]
+    moved = corners.copy()
+    moved[k] += step_px
+    out2 = rasterize_mesh(torch.tensor(V2, dtype=torch.float32), torch.as_tensor(F), np.eye(4), K, res, res)
+    d = (out2["alpha"] - out["alpha"]).numpy().ravel()
+    changed = np.abs(d) > 1e-6
+    assert changed.sum() >= 10 and d.sum() > 0
+    P_all = _pixel_centres(res)
+    shrunk = d < -1e-6
+    assert d[shrunk].min(initial=0.0) > -0.01 * d.max()
+    fixed_ends = corners[[(k - 1) % 4, (k + 1) % 4]]
+    for p in P_all[shrunk]:
+        assert np.linalg.norm(fixed_ends - p, axis=1).min() < 1.5
+    P = P_all[changed]
+    near = np.zeros(len(P), dtype=bool)
+    for j in (k - 1, k + 1):  # the two edges at vertex k, before and after the move
+        for poly in (corners, moved):
+            a, b = poly[j % 4], poly[k]
+            t = np.clip(((P - a) @ (b - a)) / ((b - a) @ (b - a)), 0, 1)
+            near |= np.linalg.norm(P - (a + t[:, None] * (b - a)), axis=1) < 1.5
+    assert near.all()
+
+
 def test_outputs_do_not_depend_on_tile_size(scene):
     V, F, vm, K, res = scene
     v = torch.tensor(V, dtype=torch.float32)
