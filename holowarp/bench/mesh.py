@@ -206,6 +206,23 @@ def _accuracy() -> dict:
     errs["raster_alpha_warp_float32"] = _fd_rel_err(
         lambda z: (rasterize_mesh(z, F, vm, K, res, res)["alpha"].double() * wa).sum(), v32, 1e-4
     )
+    # normal is piecewise constant per face: skip coordinates whose step changes a face id
+    vn = v32.clone().requires_grad_(True)
+    (rasterize_mesh(vn, F, vm, K, res, res)["normal"].double() * wn).sum().backward()
+    fdn = torch.zeros_like(vn.grad, dtype=torch.float64)
+    keep = torch.ones_like(fdn, dtype=torch.bool)
+    with torch.no_grad():
+        for i in range(V.shape[0]):
+            for j in range(3):
+                a, b = v32.clone(), v32.clone()
+                a[i, j] += 1e-3
+                b[i, j] -= 1e-3
+                oa, ob = rasterize_mesh(a, F, vm, K, res, res), rasterize_mesh(b, F, vm, K, res, res)
+                keep[i, j] = torch.equal(oa["face_id"], ob["face_id"])
+                fdn[i, j] = ((oa["normal"].double() - ob["normal"].double()) * wn).sum() / 2e-3
+    errs["raster_normal_warp_float32_same_face_ids"] = float(
+        (vn.grad.double() - fdn)[keep].abs().max() / fdn[keep].abs().max()
+    )
     # the Warp gradient against the float64 reference's autograd gradient
     vw = v32.clone().requires_grad_(True)
     vr = v64.clone().requires_grad_(True)
