@@ -311,6 +311,8 @@ def test_synth_resume_keeps_existing_views(synth_box, tmp_path):
     s = synthesize(obj, dst, views=VIEWS, res=RES, resume=True, progress=False)
     assert s["rendered"] == 1 and (dst / "train" / "r_7.png").is_file()
     assert isinstance(load_dataset(dst), Dataset)
+    with pytest.raises(SynthError, match="resolution: 24 -> 32"):
+        synthesize(obj, dst, views=VIEWS, res=32, resume=True, progress=False)
 
 
 @pytest.mark.parametrize("name,euler", [("spot", 2), ("bob", 0)])

@@ -175,6 +175,21 @@ def synthesize(
         raise SynthError(f"fov must lie in (0, 180) degrees, got {fov_deg}")
     if (out / "transforms_train.json").exists() and not (resume or overwrite):
         raise SynthError(f"{out} already holds a dataset; pass --resume to continue it or --overwrite to replace it")
+    if resume and (out / "transforms_train.json").exists():
+        import json
+
+        try:
+            prev = json.loads((out / "transforms_train.json").read_text()).get("holowarp", {})
+        except (OSError, ValueError):
+            prev = {}
+        want = {"num_views": views, "resolution": res, "supersample": supersample, "up_axis": str(up_axis).lower(), "test_every": test_every}
+        diff = {k: (prev.get(k), v) for k, v in want.items() if k in prev and prev.get(k) != v}
+        if diff:
+            raise SynthError(
+                f"{out}: --resume with settings that differ from the existing dataset "
+                + ", ".join(f"{k}: {a} -> {b}" for k, (a, b) in diff.items())
+                + "; use --overwrite to replace it"
+            )
     try:
         obj = load_obj(mesh_path)
     except ObjError as e:

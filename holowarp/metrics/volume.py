@@ -28,8 +28,16 @@ def inside_mask(vertices, faces, points, *, device: str = "cpu") -> np.ndarray:
     v = np.ascontiguousarray(vertices, dtype=np.float32)
     f = np.ascontiguousarray(faces, dtype=np.int32)
     p = np.ascontiguousarray(points, dtype=np.float32)
-    if len(f) == 0:
-        return np.zeros(len(p), dtype=bool)
+    result = np.zeros(len(p), dtype=bool)
+    if len(f) == 0 or len(p) == 0:
+        return result
+    # A point outside the surface's bounding box is outside it: skip the BVH query.
+    lo, hi = v.min(0), v.max(0)
+    pad = 1e-6 * float((hi - lo).max())
+    cand = np.flatnonzero(np.all((p >= lo - pad) & (p <= hi + pad), axis=1))
+    if len(cand) == 0:
+        return result
+    p = np.ascontiguousarray(p[cand])
     mesh = wp.Mesh(
         points=wp.array(v, dtype=wp.vec3, device=dev),
         indices=wp.array(f.ravel(), dtype=wp.int32, device=dev),
@@ -39,7 +47,8 @@ def inside_mask(vertices, faces, points, *, device: str = "cpu") -> np.ndarray:
     out = wp.zeros(len(p), dtype=wp.int32, device=dev)
     span = float(np.linalg.norm(np.concatenate([v, p]).max(0) - np.concatenate([v, p]).min(0)))
     wp.launch(winding_inside_kernel, dim=len(p), inputs=[mesh.id, pts, 2.0 * span + 1.0], outputs=[out], device=dev)
-    return out.numpy().astype(bool)
+    result[cand] = out.numpy().astype(bool)
+    return result
 
 
 def volume_iou(
