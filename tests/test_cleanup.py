@@ -36,7 +36,8 @@ def test_pinched_boundary_is_repaired_into_one_manifold_component(make, defect):
     man = mesh.manifold()
     assert not man["manifold"]
     assert (man["bad_edges"] if defect == "edge" else man["bad_vertices"]) > 0
-    fixed, info = repair_manifold(mesh)
+    keep, info = repair_manifold(mesh)
+    fixed = mesh.submesh(keep)
     assert info["manifold"] and fixed.manifold()["manifold"]
     assert fixed.num_components() == 1
     assert 0 < info["removed_tets"] < mesh.num_tets // 2
@@ -52,7 +53,8 @@ def test_cleanup_flips_fine_inverted_tets_and_drops_degenerate_ones(rng):
     V = np.vstack([mesh.vertices, [[5, 5, 5], [6, 5, 5], [5, 6, 5], [6, 6, 5 + 1e-9]]])
     n = mesh.num_vertices
     bad = TetMesh(V, np.vstack([t, [[n, n + 1, n + 2, n + 3]]]))
-    clean, info = cleanup(bad)
+    clean, kept, info = cleanup(bad)
+    np.testing.assert_array_equal(np.sort(kept), np.arange(mesh.num_tets))
     assert info["inverted_before_cleanup"] == 7  # the sliver is tiny but positive
     assert info["flipped"] == 7
     assert info["dropped"] == 1
@@ -66,7 +68,8 @@ def test_cleanup_keeps_largest_component_and_counts_the_rest():
     a = box_tetmesh((2, 2, 2))
     b = box_tetmesh((1, 1, 1), origin=(5, 0, 0))
     both = TetMesh(np.vstack([a.vertices, b.vertices]), np.vstack([a.tets, b.tets + a.num_vertices]))
-    clean, info = cleanup(both)
+    clean, kept, info = cleanup(both)
+    np.testing.assert_array_equal(kept, np.arange(a.num_tets))
     assert info["components_before"] == 2 and info["components_removed"] == 1
     assert info["tets_removed_by_component"] == b.num_tets
     assert clean.num_tets == a.num_tets

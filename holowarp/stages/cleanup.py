@@ -76,68 +76,74 @@ def _fans(tets: np.ndarray, star: np.ndarray, pivot: tuple[int, ...]) -> list[np
     return [np.array(g) for g in groups.values()]
 
 
-def repair_manifold(mesh: TetMesh, *, max_rounds: int = 50) -> tuple[TetMesh, dict]:
+def repair_manifold(mesh: TetMesh, *, max_rounds: int = 50) -> tuple[np.ndarray, dict]:
     """Remove the minority fans around non-manifold boundary edges and vertices until the
     boundary is manifold (see the module docstring).
 
+    Vertices are never renumbered here, so the result is a mask over ``mesh.tets``.
+
     Returns:
-        (mesh, info) with ``removed_tets``, ``rounds`` and the final ``manifold`` flag.
+        (keep, info): keep (M,) bool over the input tets; info with ``removed_tets``,
+        ``rounds`` and the final ``manifold`` flag.
     """
-    removed = 0
+    keep = np.ones(mesh.num_tets, dtype=bool)
+    vol = np.abs(mesh.signed_volumes())
     rounds = 0
+    current = mesh
     for rounds in range(1, max_rounds + 1):
-        bad_edges, bad_vertices = mesh.non_manifold_edges(), mesh.non_manifold_vertices()
+        bad_edges, bad_vertices = current.non_manifold_edges(), current.non_manifold_vertices()
         if len(bad_edges) == 0 and len(bad_vertices) == 0:
             rounds -= 1
             break
-        T = mesh.tets.astype(np.int64)
-        offs, v2t = _vertex_to_tets(T, mesh.num_vertices)
-        drop = np.zeros(mesh.num_tets, dtype=bool)
-        vol = np.abs(mesh.signed_volumes())
-        for a, b in bad_edges:
-            sa = v2t[offs[a] : offs[a + 1]]
-            star = sa[np.any(T[sa] == b, axis=1)]
-            fans = _fans(T, star, (int(a), int(b)))
+        ids = np.flatnonzero(keep)
+        T = current.tets.astype(np.int64)
+        offs, v2t = _vertex_to_tets(T, current.num_vertices)
+        drop = np.zeros(len(ids), dtype=bool)
+        v = vol[ids]
+        stars = [(sa := v2t[offs[a] : offs[a + 1]])[np.any(T[sa] == b, axis=1)] for a, b in bad_edges]
+        pivots = [(int(a), int(b)) for a, b in bad_edges]
+        stars += [v2t[offs[x] : offs[x + 1]] for x in bad_vertices]
+        pivots += [(int(x),) for x in bad_vertices]
+        for star, pivot in zip(stars, pivots):
+            fans = _fans(T, star, pivot)
             if len(fans) > 1:
-                keep = max(range(len(fans)), key=lambda i: vol[fans[i]].sum())
+                best = max(range(len(fans)), key=lambda i: v[fans[i]].sum())
                 for i, f in enumerate(fans):
-                    if i != keep:
-                        drop[f] = True
-        for v in bad_vertices:
-            star = v2t[offs[v] : offs[v + 1]]
-            fans = _fans(T, star, (int(v),))
-            if len(fans) > 1:
-                keep = max(range(len(fans)), key=lambda i: vol[fans[i]].sum())
-                for i, f in enumerate(fans):
-                    if i != keep:
+                    if i != best:
                         drop[f] = True
         if not drop.any():
-            # A defect not resolvable by fans (e.g. an edge whose star is one fan but the
-            # boundary still pinches): remove the smallest tet touching it.
-            cand = np.unique(
-                np.concatenate([v2t[offs[v] : offs[v + 1]] for v in np.unique(np.r_[bad_edges.ravel(), bad_vertices])])
-            )
-            drop[cand[np.argmin(vol[cand])]] = True
-        removed += int(drop.sum())
-        mesh = mesh.submesh(~drop)
-        mesh, _ = mesh.keep_largest_component()
-    man = mesh.manifold()
-    return mesh, {"removed_tets": removed, "rounds": rounds, "manifold": bool(man["manifold"])}
+            # A defect no fan split explains: remove the smallest tet touching it.
+            touch = np.unique(np.concatenate(stars))
+            drop[touch[np.argmin(v[touch])]] = True
+        keep[ids[drop]] = False
+        sub = TetMesh(mesh.vertices, mesh.tets[keep], validate=False)
+        labels, n = sub.components()
+        if n > 1:
+            largest = labels == np.argmax(np.bincount(labels))
+            keep[np.flatnonzero(keep)[~largest]] = False
+            sub = TetMesh(mesh.vertices, mesh.tets[keep], validate=False)
+        current = sub
+    man = current.manifold()
+    return keep, {"removed_tets": int((~keep).sum()), "rounds": rounds, "manifold": bool(man["manifold"])}
 
 
-def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[TetMesh, dict]:
-    """Run the §7 cleanup; returns the clean mesh and a report of every count.
+def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[TetMesh, np.ndarray, dict]:
+    """Run the §7 cleanup.
 
-    Report keys: ``inverted_before_cleanup`` (tets with signed volume <= 0 on entry),
-    ``flipped``, ``dropped`` (degenerate), ``components_before``, ``components_removed``,
-    ``tets_removed_by_component``, ``tets_removed_for_manifold``, ``manifold``,
-    ``tets_before``, ``tets_after``.
+    Returns:
+        (mesh, kept, info): the clean mesh (unused vertices removed), ``kept`` (K,) int64
+        the indices of its tets in the input (tet i of the output is input tet kept[i],
+        possibly with two vertices swapped), and a report of every count:
+        ``inverted_before_cleanup`` (signed volume <= 0 on entry), ``flipped``, ``dropped``
+        (degenerate), ``components_before``, ``components_removed``,
+        ``tets_removed_by_component``, ``tets_removed_for_manifold``, ``manifold``,
+        ``components``, ``inverted_after_cleanup``, ``tets_before``, ``tets_after``.
     """
+    if mesh.num_tets == 0:
+        raise ValueError("cleanup: the mesh has no tetrahedra")
     info = {"tets_before": mesh.num_tets}
     vol = mesh.signed_volumes()
     info["inverted_before_cleanup"] = int(np.count_nonzero(vol <= 0))
-    if mesh.num_tets == 0:
-        raise ValueError("cleanup: the mesh has no tetrahedra")
     thresh = config.degenerate_rel * float(np.median(np.abs(vol)))
     degenerate = np.abs(vol) < thresh
     flip = (vol < 0) & ~degenerate
@@ -145,16 +151,24 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
     t[flip, 2], t[flip, 3] = mesh.tets[flip, 3], mesh.tets[flip, 2]
     info["flipped"] = int(flip.sum())
     info["dropped"] = int(degenerate.sum())
-    mesh = TetMesh(mesh.vertices, t[~degenerate], validate=False)
-    mesh, comp = mesh.keep_largest_component()
-    info["components_before"] = comp["components"]
-    info["components_removed"] = comp["removed_components"]
-    info["tets_removed_by_component"] = comp["removed_tets"]
-    mesh, rep = repair_manifold(mesh, max_rounds=config.max_repair_rounds)
+    kept = np.flatnonzero(~degenerate)
+    work = TetMesh(mesh.vertices, t[kept], validate=False)
+    labels, n = work.components()
+    info["components_before"] = n
+    info["components_removed"] = max(n - 1, 0)
+    if n > 1:
+        largest = labels == np.argmax(np.bincount(labels))
+        info["tets_removed_by_component"] = int((~largest).sum())
+        kept = kept[largest]
+        work = TetMesh(mesh.vertices, t[kept], validate=False)
+    else:
+        info["tets_removed_by_component"] = 0
+    keep, rep = repair_manifold(work, max_rounds=config.max_repair_rounds)
+    kept = kept[keep]
     info["tets_removed_for_manifold"] = rep["removed_tets"]
-    mesh, _ = mesh.remove_unused_vertices()
+    out, _ = TetMesh(mesh.vertices, t[kept], validate=False).remove_unused_vertices()
     info["manifold"] = rep["manifold"]
-    info["components"] = mesh.num_components()
-    info["inverted_after_cleanup"] = int(np.count_nonzero(mesh.signed_volumes() <= 0))
-    info["tets_after"] = mesh.num_tets
-    return mesh, info
+    info["components"] = out.num_components()
+    info["inverted_after_cleanup"] = int(np.count_nonzero(out.signed_volumes() <= 0))
+    info["tets_after"] = out.num_tets
+    return out, kept.astype(np.int64), info

@@ -1,0 +1,219 @@
+"""The hybrid representation of HoloTetSphere: one tet mesh, one surfel bound to each tet.
+
+Each tet ``e`` carries one 2D-Gaussian surfel at its centroid, i.e. with fixed barycentric
+coordinates beta = (1/4, 1/4, 1/4, 1/4) (method.md §4): moving the tet's vertices moves the
+surfel. Colour and rotation are learnable per surfel. Opacity comes either from
+
+- the continuous field (method.md §5): a learnable scalar ``phi`` per VERTEX (SDF-like,
+  negative inside), ``alpha_e = sigmoid(-s * kappa * mean(phi[tet_e]))`` with a learnable
+  sharpness ``kappa`` whose product with ``s`` is clamped to ``kappa_clamp``; or
+- a free per-tet opacity logit: after the first prune (method.md §5, initialised from the
+  field), and throughout in the ablation "w/o continuous opacity".
+
+Surfel scales are fixed at ``scale_factor`` times the mean centroid-to-vertex distance of the
+host tet until the first prune, after which they become learnable (log-scale).
+
+All learnable tensors are plain ``torch.nn.Parameter`` attributes so the pipeline builds its
+Adam groups explicitly, and everything is serialisable with :meth:`state_dict`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from holowarp.tetmesh import TetMesh
+
+__all__ = ["TetGaussians", "tet_mean_radius"]
+
+
+def tet_mean_radius(vertices: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
+    """Mean distance (M,) from each tet's centroid to its four vertices."""
+    P = vertices[tets]  # [M, 4, 3]
+    c = P.mean(dim=1, keepdim=True)
+    return (P - c).norm(dim=-1).mean(dim=1)
+
+
+def _logit(p: torch.Tensor) -> torch.Tensor:
+    p = p.clamp(1e-6, 1 - 1e-6)
+    return torch.log(p) - torch.log1p(-p)
+
+
+class TetGaussians:
+    """Tet mesh + bound surfels.
+
+    Args:
+        mesh: the (positively oriented) tet mesh.
+        colors: (M, 3) initial colours in [0, 1].
+        phi: (V,) initial vertex field (continuous mode).
+        continuous_opacity: use the vertex field (True) or free per-tet opacities (False).
+        kappa: initial sharpness; s: fixed scale; kappa_clamp: range of s * kappa.
+        scale_factor: surfel scale = factor * mean centroid-to-vertex distance.
+        device: torch device.
+
+    Attributes (torch tensors on ``device``):
+        vertices [V, 3] float32 (a Parameter; only mesh blocks give it to an optimiser),
+        tets [M, 4] int64, phi [V] (Parameter), kappa [] (Parameter), opacity_logit [M]
+        (Parameter, used when ``free_opacity``), color_logit [M, 3], quats [M, 4] wxyz,
+        log_scales [M, 2].
+    """
+
+    def __init__(
+        self,
+        mesh: TetMesh,
+        *,
+        colors=None,
+        phi=None,
+        continuous_opacity: bool = True,
+        kappa: float = 10.0,
+        s: float = 1.0,
+        kappa_clamp=(1.0, 50.0),
+        scale_factor: float = 0.65,
+        initial_opacity: float = 0.9,
+        device="cpu",
+        seed: int = 0,
+    ):
+        dev = torch.device(device)
+        P = torch.nn.Parameter
+        M, V = mesh.num_tets, mesh.num_vertices
+        self.device = dev
+        self.s = float(s)
+        self.kappa_clamp = (float(kappa_clamp[0]), float(kappa_clamp[1]))
+        self.scale_factor = float(scale_factor)
+        self.vertices = P(torch.as_tensor(mesh.vertices, dtype=torch.float32, device=dev).clone())
+        self.tets = torch.as_tensor(mesh.tets, dtype=torch.int64, device=dev).clone()
+        if phi is None:
+            phi = np.full(V, -0.3)
+        self.phi = P(torch.as_tensor(np.asarray(phi), dtype=torch.float32, device=dev).clone())
+        self.kappa = P(torch.tensor(float(kappa), dtype=torch.float32, device=dev))
+        self.free_opacity = not continuous_opacity
+        self.opacity_logit = P(torch.full((M,), float(_logit(torch.tensor(initial_opacity))), device=dev))
+        if colors is None:
+            colors = np.full((M, 3), 0.5)
+        self.color_logit = P(_logit(torch.as_tensor(np.asarray(colors), dtype=torch.float32, device=dev)).clone())
+        # Random initial orientations: no direction is privileged inside a hull.
+        g = torch.Generator().manual_seed(int(seed))
+        q = torch.randn((M, 4), generator=g)
+        self.quats = P((q / q.norm(dim=1, keepdim=True)).to(dev))
+        with torch.no_grad():
+            r = tet_mean_radius(self.vertices, self.tets) * self.scale_factor
+        self.log_scales = P(torch.log(r.clamp_min(1e-8))[:, None].repeat(1, 2).contiguous())
+
+    # ------------------------------------------------------------------ views of the state
+    @property
+    def num_tets(self) -> int:
+        return int(self.tets.shape[0])
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    def mesh(self) -> TetMesh:
+        """The current tet mesh (float64 copy of the vertices)."""
+        return TetMesh(self.vertices.detach().cpu().double().numpy(), self.tets.cpu().numpy(), validate=False)
+
+    def means(self, vertices: torch.Tensor | None = None) -> torch.Tensor:
+        """Surfel centres [M, 3]: the tet centroids (beta = 1/4 each), differentiable in x.
+
+        ``vertices`` (V, 3) overrides the model's positions (e.g. a block's rest shape)."""
+        v = self.vertices if vertices is None else vertices
+        return v[self.tets].mean(dim=1)
+
+    def sharpness(self) -> torch.Tensor:
+        """s * kappa clamped to ``kappa_clamp`` (method.md §5)."""
+        return (self.s * self.kappa).clamp(*self.kappa_clamp)
+
+    def field_opacities(self) -> torch.Tensor:
+        """Opacities [M] from the vertex field: sigmoid(-s kappa mean(phi[tet]))."""
+        phi_bar = self.phi[self.tets].mean(dim=1)
+        return torch.sigmoid(-self.sharpness() * phi_bar)
+
+    def opacities(self) -> torch.Tensor:
+        """Current per-surfel opacities [M] in (0, 1)."""
+        if self.free_opacity:
+            return torch.sigmoid(self.opacity_logit)
+        return self.field_opacities()
+
+    def colors(self) -> torch.Tensor:
+        return torch.sigmoid(self.color_logit)
+
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.log_scales)
+
+    def render(self, viewmat, K, width: int, height: int, *, background=None, vertices=None) -> dict:
+        """Render the bound surfels with :func:`holowarp.ops.rasterize_surfels`
+        (``vertices`` optionally overrides the positions the surfels are bound to)."""
+        from holowarp.ops import rasterize_surfels
+
+        return rasterize_surfels(
+            self.means(vertices),
+            self.quats,
+            self.scales(),
+            self.opacities(),
+            self.colors(),
+            torch.as_tensor(viewmat, dtype=torch.float32, device=self.device),
+            torch.as_tensor(K, dtype=torch.float32, device=self.device),
+            int(width),
+            int(height),
+            background=background,
+        )
+
+    # ------------------------------------------------------------------ topology changes
+    def reset_scales(self) -> None:
+        """Scale = scale_factor * mean centroid-to-vertex distance of the host tet (§5)."""
+        with torch.no_grad():
+            r = tet_mean_radius(self.vertices, self.tets) * self.scale_factor
+            self.log_scales.data = torch.log(r.clamp_min(1e-8))[:, None].repeat(1, 2).contiguous()
+
+    def freeze_opacity_from_field(self) -> None:
+        """Switch to free per-tet opacities initialised from the current field (§5)."""
+        if not self.free_opacity:
+            with torch.no_grad():
+                self.opacity_logit.data = _logit(self.field_opacities()).contiguous()
+            self.free_opacity = True
+
+    def keep(self, keep_tets) -> np.ndarray:
+        """Keep only the tets in ``keep_tets`` (bool (M,) or indices); drop unused vertices.
+
+        Surviving surfels keep their colour, rotation, scale and opacity; surviving vertices
+        keep their position and phi. Returns old-to-new vertex ids (V_old,), -1 = removed.
+        """
+        keep_tets = torch.as_tensor(np.asarray(keep_tets), device=self.device)
+        if keep_tets.dtype == torch.bool:
+            keep_tets = torch.nonzero(keep_tets).squeeze(1)
+        tets = self.tets[keep_tets]
+        used = torch.zeros(self.num_vertices, dtype=torch.bool, device=self.device)
+        used[tets.reshape(-1)] = True
+        old_to_new = torch.full((self.num_vertices,), -1, dtype=torch.int64, device=self.device)
+        old_to_new[used] = torch.arange(int(used.sum()), device=self.device)
+        P = torch.nn.Parameter
+        with torch.no_grad():
+            self.tets = old_to_new[tets]
+            self.vertices = P(self.vertices.data[used].clone())
+            self.phi = P(self.phi.data[used].clone())
+            self.opacity_logit = P(self.opacity_logit.data[keep_tets].clone())
+            self.color_logit = P(self.color_logit.data[keep_tets].clone())
+            self.quats = P(self.quats.data[keep_tets].clone())
+            self.log_scales = P(self.log_scales.data[keep_tets].clone())
+        return old_to_new.cpu().numpy()
+
+    # ------------------------------------------------------------------ (de)serialisation
+    _TENSORS = ("vertices", "tets", "phi", "kappa", "opacity_logit", "color_logit", "quats", "log_scales")
+
+    def state_dict(self) -> dict:
+        d = {k: getattr(self, k).detach().cpu().clone() for k in self._TENSORS}
+        d.update(free_opacity=self.free_opacity, s=self.s, kappa_clamp=self.kappa_clamp, scale_factor=self.scale_factor)
+        return d
+
+    @classmethod
+    def from_state_dict(cls, d: dict, *, device="cpu") -> "TetGaussians":
+        obj = cls.__new__(cls)
+        obj.device = torch.device(device)
+        obj.s = float(d["s"])
+        obj.kappa_clamp = tuple(d["kappa_clamp"])
+        obj.scale_factor = float(d["scale_factor"])
+        obj.free_opacity = bool(d["free_opacity"])
+        for k in cls._TENSORS:
+            t = d[k].to(obj.device)
+            setattr(obj, k, t if k == "tets" else torch.nn.Parameter(t.clone()))
+        return obj
