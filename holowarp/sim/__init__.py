@@ -1,0 +1,47 @@
+"""Deformable-body simulation of tet meshes in Warp (method.md §10, the Isaac Sim stand-in).
+
+Newton's architecture: a static :class:`Model` built by a :class:`ModelBuilder`,
+:class:`State` objects (positions, velocities), a :class:`Control` (kinematic plate poses)
+and a solver, :class:`SolverXPBDNeoHookean`, whose ``step(state_in, state_out, control,
+contacts, dt)`` is pure in its inputs. Scenarios are TOML data (:func:`load_scene`);
+:func:`simulate` runs one end to end and writes USD and a report.
+"""
+
+from holowarp.sim.control import Control
+from holowarp.sim.model import (
+    GRAVITY,
+    Body,
+    Model,
+    ModelBuilder,
+    ModelError,
+    Plate,
+    lame_parameters,
+)
+from holowarp.sim.solver import PAPER_DT, PAPER_ITERATIONS, STABILITY_RATIO, SolverXPBDNeoHookean, StepPlan
+from holowarp.sim.state import State
+from holowarp.sim.scene import Scene, SceneError, load_scene
+from holowarp.sim.analysis import pieces_apart
+from holowarp.sim.run import SimulationError, simulate
+
+__all__ = [
+    "GRAVITY",
+    "PAPER_DT",
+    "PAPER_ITERATIONS",
+    "Body",
+    "Control",
+    "Model",
+    "ModelBuilder",
+    "ModelError",
+    "Plate",
+    "Scene",
+    "SceneError",
+    "SimulationError",
+    "STABILITY_RATIO",
+    "SolverXPBDNeoHookean",
+    "StepPlan",
+    "State",
+    "lame_parameters",
+    "load_scene",
+    "pieces_apart",
+    "simulate",
+]

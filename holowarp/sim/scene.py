@@ -1,0 +1,353 @@
+"""Simulation scenarios as data: TOML files under ``scenes/`` (method.md §10).
+
+A scene fixes everything but the mesh: time stepping, material, where the object is put,
+the ground and the kinematic plates. ``load_scene("drop")`` reads a built-in scene,
+``load_scene("my.toml")`` any file. Every value is checked; a bad value raises
+:class:`SceneError` naming the file and the key (``drop.toml: [material] poissons_ratio:
+must lie in [0, 0.5), got 0.5``). Unknown keys are errors too, so a typo never passes
+silently.
+
+Layout (all SI; see ``scenes/drop.toml`` for a commented example)::
+
+    name = "drop"
+    [sim]        dt, substeps, iterations, duration, gravity, damping
+    [material]   youngs_modulus, poissons_ratio, density, friction, restitution
+    [placement]  size, rotation, center_xy, height, velocity
+    [ground]     enabled
+    [[plates]]   name, normal, size, frame ("object" | "world"), path = [[t, x, y, z], ...]
+
+Plate paths in the ``"object"`` frame are fractions of the placed object's rest bounding
+box (``[0, 0, 0]`` its minimum corner, ``[1, 1, 1]`` its maximum corner), and so are their
+sizes; in the ``"world"`` frame they are metres.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from holowarp.sim.model import GRAVITY, ModelBuilder, euler_xyz_to_matrix
+from holowarp.sim.solver import PAPER_DT, PAPER_ITERATIONS
+
+__all__ = [
+    "SceneError",
+    "SimSettings",
+    "MaterialSettings",
+    "Placement",
+    "PlateSpec",
+    "Scene",
+    "load_scene",
+    "placement_transform",
+    "build_model",
+]
+
+
+class SceneError(ValueError):
+    """A scene file is missing, unreadable or holds a bad value; the message says where."""
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """Time stepping (method.md §10: dt = 1/60 s, 16 iterations)."""
+
+    dt: float = PAPER_DT  # s
+    substeps: int = 1
+    iterations: int = PAPER_ITERATIONS  # per substep
+    duration: float = 1.0  # s
+    gravity: tuple = (0.0, 0.0, -GRAVITY)  # m/s²
+    damping: float = 0.0  # 1/s
+
+
+@dataclass(frozen=True)
+class MaterialSettings:
+    """Stable Neo-Hookean material and contact coefficients."""
+
+    youngs_modulus: float = 1.0e5  # Pa
+    poissons_ratio: float = 0.45
+    density: float = 1000.0  # kg/m³
+    friction: float = 0.5  # Coulomb (static = kinetic)
+    restitution: float = 0.0
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where the object goes: rotate about its bbox centre, scale, then put it down."""
+
+    size: float = 0.0  # m, largest bbox side after scaling; 0 keeps the mesh's scale
+    rotation: tuple = (0.0, 0.0, 0.0)  # degrees, extrinsic X, Y, Z
+    center_xy: tuple = (0.0, 0.0)  # m
+    height: float = 0.0  # m, lowest point above z = 0
+    velocity: tuple = (0.0, 0.0, 0.0)  # m/s
+
+
+@dataclass(frozen=True)
+class PlateSpec:
+    """A kinematic plate as written in the scene (see the module docstring)."""
+
+    name: str
+    normal: tuple
+    path: tuple  # ((t, x, y, z), ...)
+    size: tuple = (1.5, 1.5, 0.05)
+    frame: str = "object"
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A parsed, validated scene."""
+
+    name: str
+    source: str
+    sim: SimSettings = field(default_factory=SimSettings)
+    material: MaterialSettings = field(default_factory=MaterialSettings)
+    placement: Placement = field(default_factory=Placement)
+    ground: bool = True
+    plates: tuple = ()
+
+    @property
+    def num_steps(self) -> int:
+        """Steps to simulate: ``round(duration / dt)``."""
+        return int(round(self.sim.duration / self.sim.dt))
+
+    def as_dict(self) -> dict:
+        """Plain-data view (for reports)."""
+        import dataclasses
+
+        return dataclasses.asdict(self)
+
+
+# ---------------------------------------------------------------------------- parsing
+_TOP_KEYS = {"name", "description", "sim", "material", "placement", "ground", "plates"}
+
+
+def _num(src, sec, key, v, *, lo=None, hi=None, lo_open=False, integer=False):
+    where = f"{src}: [{sec}] {key}"
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise SceneError(f"{where}: expected a number, got {v!r}")
+    if integer and (not float(v).is_integer()):
+        raise SceneError(f"{where}: expected an integer, got {v!r}")
+    v = int(v) if integer else float(v)
+    if not math.isfinite(v):
+        raise SceneError(f"{where}: must be finite, got {v!r}")
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        raise SceneError(f"{where}: must be {'>' if lo_open else '>='} {lo}, got {v!r}")
+    if hi is not None and v > hi:
+        raise SceneError(f"{where}: must be <= {hi}, got {v!r}")
+    return v
+
+
+def _vec(src, sec, key, v, n):
+    where = f"{src}: [{sec}] {key}"
+    if not isinstance(v, (list, tuple)) or len(v) != n:
+        raise SceneError(f"{where}: expected a list of {n} numbers, got {v!r}")
+    return tuple(_num(src, sec, key, x) for x in v)
+
+
+def _table(src, data, sec, allowed):
+    t = data.get(sec, {})
+    if not isinstance(t, dict):
+        raise SceneError(f"{src}: [{sec}] must be a table, got {type(t).__name__}")
+    unknown = sorted(set(t) - set(allowed))
+    if unknown:
+        raise SceneError(f"{src}: [{sec}] unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
+    return t
+
+
+def parse_scene(data: dict, *, source: str = "<scene>") -> Scene:
+    """Validate a scene given as a dict (the parsed TOML)."""
+    src = source
+    unknown = sorted(set(data) - _TOP_KEYS)
+    if unknown:
+        raise SceneError(f"{src}: unknown top-level key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_TOP_KEYS))}")
+    name = data.get("name", Path(src).stem)
+    if not isinstance(name, str) or not name:
+        raise SceneError(f"{src}: name must be a non-empty string, got {name!r}")
+
+    d = SimSettings()
+    t = _table(src, data, "sim", {"dt", "substeps", "iterations", "duration", "gravity", "damping"})
+    sim = SimSettings(
+        dt=_num(src, "sim", "dt", t.get("dt", d.dt), lo=0.0, lo_open=True, hi=1.0),
+        substeps=_num(src, "sim", "substeps", t.get("substeps", d.substeps), lo=1, hi=1024, integer=True),
+        iterations=_num(src, "sim", "iterations", t.get("iterations", d.iterations), lo=1, hi=10000, integer=True),
+        duration=_num(src, "sim", "duration", t.get("duration", d.duration), lo=0.0, lo_open=True),
+        gravity=_vec(src, "sim", "gravity", t.get("gravity", d.gravity), 3),
+        damping=_num(src, "sim", "damping", t.get("damping", d.damping), lo=0.0),
+    )
+    if sim.duration < sim.dt:
+        raise SceneError(f"{src}: [sim] duration ({sim.duration} s) is shorter than one step dt ({sim.dt} s)")
+    ratio = 1.0 / (60.0 * sim.dt)
+    if abs(ratio - round(ratio)) > 1e-6 * max(ratio, 1.0) or round(ratio) < 1:
+        raise SceneError(
+            f"{src}: [sim] dt: must be 1/60 s divided by a whole number (output is 60 frames per "
+            f"second), got {sim.dt}"
+        )
+
+    d = MaterialSettings()
+    t = _table(src, data, "material", {"youngs_modulus", "poissons_ratio", "density", "friction", "restitution"})
+    mat = MaterialSettings(
+        youngs_modulus=_num(src, "material", "youngs_modulus", t.get("youngs_modulus", d.youngs_modulus), lo=0.0, lo_open=True),
+        poissons_ratio=_num(src, "material", "poissons_ratio", t.get("poissons_ratio", d.poissons_ratio), lo=0.0),
+        density=_num(src, "material", "density", t.get("density", d.density), lo=0.0, lo_open=True),
+        friction=_num(src, "material", "friction", t.get("friction", d.friction), lo=0.0),
+        restitution=_num(src, "material", "restitution", t.get("restitution", d.restitution), lo=0.0, hi=1.0),
+    )
+    if not mat.poissons_ratio < 0.5:
+        raise SceneError(f"{src}: [material] poissons_ratio: must lie in [0, 0.5), got {mat.poissons_ratio}")
+
+    d = Placement()
+    t = _table(src, data, "placement", {"size", "rotation", "center_xy", "height", "velocity"})
+    pl = Placement(
+        size=_num(src, "placement", "size", t.get("size", d.size), lo=0.0),
+        rotation=_vec(src, "placement", "rotation", t.get("rotation", d.rotation), 3),
+        center_xy=_vec(src, "placement", "center_xy", t.get("center_xy", d.center_xy), 2),
+        height=_num(src, "placement", "height", t.get("height", d.height), lo=0.0),
+        velocity=_vec(src, "placement", "velocity", t.get("velocity", d.velocity), 3),
+    )
+
+    t = _table(src, data, "ground", {"enabled"})
+    ground = t.get("enabled", True)
+    if not isinstance(ground, bool):
+        raise SceneError(f"{src}: [ground] enabled: expected true or false, got {ground!r}")
+
+    plates_raw = data.get("plates", [])
+    if not isinstance(plates_raw, list):
+        raise SceneError(f"{src}: plates must be an array of tables ([[plates]]), got {type(plates_raw).__name__}")
+    plates = []
+    names = set()
+    for k, p in enumerate(plates_raw):
+        sec = f"plates.{k}"
+        if not isinstance(p, dict):
+            raise SceneError(f"{src}: [[plates]] entry {k} must be a table")
+        unknown = sorted(set(p) - {"name", "normal", "size", "frame", "path"})
+        if unknown:
+            raise SceneError(f"{src}: [{sec}] unknown key(s) {', '.join(unknown)}")
+        pname = p.get("name", f"Plate{k}")
+        if not isinstance(pname, str) or not pname or pname in names:
+            raise SceneError(f"{src}: [{sec}] name must be a unique non-empty string, got {pname!r}")
+        names.add(pname)
+        normal = _vec(src, sec, "normal", p.get("normal"), 3)
+        if np.linalg.norm(normal) < 1e-9:
+            raise SceneError(f"{src}: [{sec}] normal: must be non-zero")
+        size = _vec(src, sec, "size", p.get("size", PlateSpec.size), 3)
+        if min(size) <= 0:
+            raise SceneError(f"{src}: [{sec}] size: all three extents must be > 0, got {list(size)}")
+        frame = p.get("frame", "object")
+        if frame not in ("object", "world"):
+            raise SceneError(f"{src}: [{sec}] frame: must be \"object\" or \"world\", got {frame!r}")
+        path = p.get("path")
+        if not isinstance(path, list) or not path:
+            raise SceneError(f"{src}: [{sec}] path: expected a non-empty list of [t, x, y, z] rows")
+        rows = tuple(_vec(src, sec, f"path[{i}]", r, 4) for i, r in enumerate(path))
+        ts = [r[0] for r in rows]
+        if any(b <= a for a, b in zip(ts, ts[1:])):
+            raise SceneError(f"{src}: [{sec}] path: times must strictly increase, got {ts}")
+        plates.append(PlateSpec(pname, normal, rows, size, frame))
+    return Scene(name=name, source=src, sim=sim, material=mat, placement=pl, ground=ground, plates=tuple(plates))
+
+
+def load_scene(name_or_path: "str | os.PathLike | Scene") -> Scene:
+    """Load a built-in scene (``"drop"``, ``"compress"``) or a ``.toml`` file.
+
+    Raises:
+        SceneError: unknown name, missing file, TOML syntax error or a bad value.
+    """
+    if isinstance(name_or_path, Scene):
+        return name_or_path
+    from holowarp.scenes import scene_path
+
+    try:
+        path = scene_path(str(name_or_path))
+    except FileNotFoundError as e:
+        raise SceneError(str(e)) from None
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python < 3.11
+        import tomli as tomllib
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{path}: not valid TOML ({e})") from None
+    except OSError as e:
+        raise SceneError(f"{path}: cannot read ({e.strerror})") from None
+    return parse_scene(data, source=str(path))
+
+
+# ---------------------------------------------------------------------------- building
+def placement_transform(vertices, placement: Placement) -> tuple[np.ndarray, float, np.ndarray]:
+    """``(rot (3, 3), scale, pos (3,))`` with ``world = rot @ (scale * v) + pos`` that applies
+    ``placement`` to a mesh with these ``vertices`` (N, 3): rotate about the bbox centre,
+    scale so the largest bbox side is ``placement.size`` (if > 0), centre in x, y at
+    ``center_xy`` and lift the lowest point to ``height``."""
+    v = np.asarray(vertices, dtype=np.float64)
+    R = euler_xyz_to_matrix(placement.rotation)
+    c = 0.5 * (v.min(0) + v.max(0))
+    vr = (v - c) @ R.T
+    ext = float(np.ptp(vr, axis=0).max())
+    if not ext > 0:
+        raise SceneError("placement: the mesh has a zero-size bounding box")
+    s = placement.size / ext if placement.size > 0 else 1.0
+    vs = vr * s
+    lo, hi = vs.min(0), vs.max(0)
+    t = np.array([
+        placement.center_xy[0] - 0.5 * (lo[0] + hi[0]),
+        placement.center_xy[1] - 0.5 * (lo[1] + hi[1]),
+        placement.height - lo[2],
+    ])
+    pos = t - s * (R @ c)
+    return R, s, pos
+
+
+def build_model(scene: Scene, meshes, *, transform=None, device: str = "cpu", names=None):
+    """Build the :class:`holowarp.sim.Model` of ``scene`` with one or more soft bodies.
+
+    Args:
+        scene: the scene.
+        meshes: a :class:`TetMesh` or a list of them (all placed with the same transform).
+        transform: ``(rot, scale, pos)`` to place the meshes (default: from the first mesh's
+            vertices via :func:`placement_transform`; pass the reference's to share a frame).
+        device: Warp device.
+        names: body names.
+
+    Returns:
+        (model, transform, bbox (2, 3) of the placed bodies that defines plate "object" frames).
+    """
+    from holowarp.tetmesh import TetMesh
+
+    meshes = [meshes] if isinstance(meshes, TetMesh) else list(meshes)
+    if transform is None:
+        transform = placement_transform(np.concatenate([m.vertices for m in meshes]), scene.placement)
+    R, s, pos = transform
+    mat = scene.material
+    b = ModelBuilder(gravity=scene.sim.gravity)
+    placed = []
+    for k, mesh in enumerate(meshes):
+        b.add_soft_mesh(
+            mesh, pos=pos, rot=R, scale=s, vel=scene.placement.velocity, density=mat.density,
+            youngs_modulus=mat.youngs_modulus, poissons_ratio=mat.poissons_ratio,
+            name=(names[k] if names else f"Body{k}"),
+        )
+        placed.append((mesh.vertices * s) @ R.T + pos)
+    allp = np.concatenate(placed)
+    bbox = np.stack([allp.min(0), allp.max(0)])
+    _add_contacts(b, scene, bbox)
+    return b.finalize(device=device), transform, bbox
+
+
+def _add_contacts(b: ModelBuilder, scene: Scene, bbox):
+    mat = scene.material
+    if scene.ground:
+        b.add_ground_plane(friction=mat.friction, restitution=mat.restitution)
+    lo, hi = bbox
+    ext = hi - lo
+    for p in scene.plates:
+        path = np.asarray(p.path, dtype=np.float64)
+        size = np.asarray(p.size, dtype=np.float64)
+        if p.frame == "object":
+            path = np.concatenate([path[:, :1], lo + path[:, 1:] * ext], axis=1)
+            size = size * np.where(ext > 0, ext, 1.0)
+        b.add_plate(p.name, normal=p.normal, path=path, size=size, friction=mat.friction,
+                    restitution=mat.restitution)

@@ -1,0 +1,42 @@
+"""What changes from step to step (Newton's ``State``): particle positions and velocities."""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["State"]
+
+
+class State:
+    """Time-varying simulation data on the model's device.
+
+    Attributes:
+        particle_q: [N] wp.vec3 positions, m.
+        particle_qd: [N] wp.vec3 velocities, m/s.
+        surface_force: [S] wp.vec3 mean force each contact surface (ground, then plates)
+            exerted on the bodies during the step that produced this state, N.
+
+    Create one with :meth:`holowarp.sim.Model.state`; it starts at the model's initial
+    positions and velocities.
+    """
+
+    def __init__(self, model):
+        import warp as wp
+
+        self.particle_q = wp.clone(model.particle_q)
+        self.particle_qd = wp.clone(model.particle_qd)
+        self.surface_force = wp.zeros(max(model.surface_count, 1), dtype=wp.vec3, device=model.device)
+
+    def positions(self) -> np.ndarray:
+        """Positions (N, 3) float64 on the host (synchronises)."""
+        return self.particle_q.numpy().astype(np.float64)
+
+    def velocities(self) -> np.ndarray:
+        """Velocities (N, 3) float64 on the host (synchronises)."""
+        return self.particle_qd.numpy().astype(np.float64)
+
+    def assign(self, other: "State") -> None:
+        """Copy ``other``'s arrays into this state."""
+        self.particle_q.assign(other.particle_q)
+        self.particle_qd.assign(other.particle_qd)
+        self.surface_force.assign(other.surface_force)
