@@ -1,0 +1,577 @@
+"""Warp kernels of the 2D-Gaussian surfel rasteriser (method.md §3).
+
+One code path for CPU and CUDA. The pipeline, launched by ``holowarp.ops.surfels``:
+
+1. :func:`project_surfels` (differentiable by Warp's autodiff): each surfel, given by its
+   centre, two scales and a quaternion, becomes the splat-to-screen transform of 2DGS
+   (Huang et al. 2024), stored in a centre-relative form that keeps float32 accurate:
+
+   ``H = K [t_u | t_v | p]``                 (rows H0, H1, H2; t_u = s_u R e_x, t_v = s_v R e_y,
+                                             p the centre, all in camera coordinates)
+   ``m = (H0[2] / H2[2], H1[2] / H2[2])``    (projected centre, pixels)
+   ``E0 = m_x H2 - H0``, ``E1 = m_y H2 - H1`` (their third components are exactly 0)
+
+   A pixel centre ``(x, y)`` with offset ``(dx, dy) = (x, y) - m`` defines two planes
+   ``a = dx H2 + E0`` and ``b = dy H2 + E1`` (homogeneous, in splat-local ``(u, v, 1)``);
+   their intersection ``c = a x b`` is the ray-splat intersection ``(u, v) = (c0, c1) / c2``.
+   Writing the planes relative to the centre avoids the cancellation of ``x H2 - H0``
+   (large pixel coordinates times camera depth), which costs float32 about 4 digits.
+2. :func:`surfel_bounds`: the conservative pixel box of every pixel where the surfel can reach
+   ``alpha >= 1/255`` (the exact box of the projected disk ``u^2 + v^2 <= r^2`` from its dual
+   conic, united with the low-pass circle, plus a one-pixel margin).
+3. Binning. The image is cut into 16x16 tiles (method.md §3), and each tile into sixteen 4x4
+   pixel blocks; a list key is ``tile * 16 + block``, so keys sort tile-major and a tile's
+   list is the concatenation of its blocks' lists. Surfels are first sorted by the camera
+   depth of their centre; :func:`emit_intersections` writes one (key, depth rank) pair per
+   block the box touches, in depth order, and a *stable* radix sort on the key keeps every
+   list front to back. :func:`block_ranges` finds each list. The 4x4 split matters on the
+   CPU, where Warp runs threads one after another: a pixel walks only the surfels whose box
+   touches its block (about 2x the surfels that cover it) instead of its whole tile (about 7x).
+   :func:`pack_splats` stores, per depth rank, everything compositing reads in one 64-byte
+   record, so the per-pixel loops read memory in increasing order.
+4. :func:`rasterize_forward`: one thread per pixel composites its list front to back with the
+   rules below and stores, per pixel, the final transmittance, the end of its list and its
+   median contributor, so that
+5. :func:`rasterize_backward` (hand-written: the compositing loop is data dependent, Warp's
+   tape cannot replay it) walks the same list back to front, recovering each transmittance
+   by division as 3DGS does, and accumulates per-surfel gradients with ``atomic_add``.
+
+Per-pixel rules (method.md §3, 2DGS):
+    rho   = min(u^2 + v^2, 2 |pixel - m|^2)          (object-space Gaussian, screen low-pass)
+    alpha = min(ALPHA_MAX, o exp(-rho / 2)),  skipped when alpha < ALPHA_MIN
+    stop before the transmittance would fall below T_MIN (that surfel is not composited)
+    z     = H2 . (u, v, 1) (camera depth of the ray-splat intersection) where the object-space
+            term is active, else the centre's depth (the 2DGS rule for edge-on splats).
+Outputs per pixel, with w_k = alpha_k T_k: colour sum w c + T bg, opacity sum w, normal sum w n,
+depth sum w z, median depth (z of the last contributor entered with T > 0.5, as 2DGS), and the
+2DGS distortion sum_k w_k sum_{j<k} w_j (z_k - z_j)^2 on camera depth.
+
+No torch import here (layout rule); arrays are plain Warp arrays.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+__all__ = [
+    "TILE_SIZE",
+    "BLOCK_SIZE",
+    "BLOCKS_PER_TILE",
+    "ALPHA_MIN",
+    "ALPHA_MAX",
+    "T_MIN",
+    "MEDIAN_T",
+    "NEAR_PLANE",
+    "splat_record",
+    "quat_wxyz_to_matrix",
+    "project_surfels",
+    "surfel_bounds",
+    "gather_counts",
+    "emit_intersections",
+    "block_ranges",
+    "pack_splats",
+    "rasterize_forward",
+    "rasterize_backward",
+]
+
+#: Tile edge in pixels (method.md §3).
+TILE_SIZE = 16
+#: Edge of the pixel blocks a tile's list is split into (see module docstring, step 3).
+BLOCK_SIZE = 4
+BLOCKS_PER_TILE = (TILE_SIZE // BLOCK_SIZE) ** 2
+#: Contributions below this alpha are skipped (method.md §3).
+ALPHA_MIN = 1.0 / 255.0
+#: Alpha is capped here (method.md §3).
+ALPHA_MAX = 0.99
+#: Compositing stops before the transmittance would drop below this (method.md §3).
+T_MIN = 1e-4
+#: The median contributor is the last one entered while the transmittance is above this (2DGS).
+MEDIAN_T = 0.5
+#: Surfels whose cut-off disk reaches closer to the camera than this (metres) are culled.
+NEAR_PLANE = 0.01
+
+_TILE = wp.constant(TILE_SIZE)
+_BLOCK = wp.constant(BLOCK_SIZE)
+_BLOCKS_X = wp.constant(TILE_SIZE // BLOCK_SIZE)  # blocks per tile row
+_ALPHA_MIN = wp.constant(ALPHA_MIN)
+_ALPHA_MAX = wp.constant(ALPHA_MAX)
+_T_MIN = wp.constant(T_MIN)
+_MEDIAN_T = wp.constant(MEDIAN_T)
+_BIG = wp.constant(1.0e30)
+#: Pixel margin around each box: float32 rounding of the box must never cut a pixel where
+#: alpha >= ALPHA_MIN, or the kernels would disagree with the dense reference.
+_BOX_MARGIN = wp.constant(1)
+
+#: Everything the compositing loop reads about one surfel, contiguous: (floor(m_x), floor(m_y),
+#: frac(m_x), frac(m_y), H2[0..2], E0[0..1], E1[0..1], P, Q, D, opacity, colour[0..2],
+#: normal[0..2], 3 unused). The centre is split so that (x + 0.5 - floor(m)) is exact and the
+#: pixel offset keeps float32's full relative precision.
+splat_record = wp.types.vector(length=24, dtype=wp.float32)
+_vec5 = wp.types.vector(length=5, dtype=wp.float32)
+
+
+@wp.func
+def quat_wxyz_to_matrix(q: wp.vec4d):
+    """Rotation matrix of a (not necessarily unit) wxyz quaternion, in float64."""
+    qn = q / wp.length(q)
+    w = qn[0]
+    x = qn[1]
+    y = qn[2]
+    z = qn[3]
+    one = wp.float64(1.0)
+    two = wp.float64(2.0)
+    return wp.mat33d(
+        one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y),
+        two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x),
+        two * (x * z - w * y), two * (y * z + w * x), one - two * (x * x + y * y),
+    )  # fmt: skip
+
+
+@wp.kernel
+def project_surfels(
+    means: wp.array(dtype=wp.vec3),  # [N] world
+    quats: wp.array(dtype=wp.vec4),  # [N] wxyz
+    scales: wp.array(dtype=wp.vec2),  # [N] linear, world units
+    viewmat: wp.mat44d,  # world-to-camera, OpenCV
+    K: wp.mat33d,  # [[fx, s, cx], [0, fy, cy], [0, 0, 1]]
+    h2: wp.array(dtype=wp.vec3),  # [N] (t_u.z, t_v.z, p.z)
+    e0: wp.array(dtype=wp.vec2),  # [N] first two entries of m_x H2 - H0
+    e1: wp.array(dtype=wp.vec2),  # [N] first two entries of m_y H2 - H1
+    pqd: wp.array(dtype=wp.vec3),  # [N] coefficients of c2 = P dx + Q dy + D
+    centers: wp.array(dtype=wp.vec2),  # [N] projected centre m, pixels
+    center_frac: wp.array(dtype=wp.vec2),  # [N] m - floor(m), from the float64 m
+    normals: wp.array(dtype=wp.vec3),  # [N] world normal, flipped to face the camera
+):
+    # Computed in float64 and rounded once: a thin splat (edge-on, or with one small scale)
+    # changes alpha by more than 1e-5 when its centre moves by one float32 ulp of a pixel
+    # coordinate (~4e-6 px at 50 px), so m is also handed on split as floor(m) + fraction.
+    i = wp.tid()
+    R = quat_wxyz_to_matrix(wp.vec4d(quats[i]))
+    Rcw = wp.mat33d(
+        viewmat[0, 0], viewmat[0, 1], viewmat[0, 2],
+        viewmat[1, 0], viewmat[1, 1], viewmat[1, 2],
+        viewmat[2, 0], viewmat[2, 1], viewmat[2, 2],
+    )  # fmt: skip
+    tcw = wp.vec3d(viewmat[0, 3], viewmat[1, 3], viewmat[2, 3])
+    s = wp.vec2d(scales[i])
+    p = Rcw @ wp.vec3d(means[i]) + tcw
+    tu = Rcw @ wp.vec3d(R[0, 0], R[1, 0], R[2, 0]) * s[0]
+    tv = Rcw @ wp.vec3d(R[0, 1], R[1, 1], R[2, 1]) * s[1]
+    nw = wp.vec3d(R[0, 2], R[1, 2], R[2, 2])
+    fx = K[0, 0]
+    sk = K[0, 1]
+    fy = K[1, 1]
+    pz = p[2]
+    if pz == wp.float64(0.0):
+        # Undefined projection; surfel_bounds culls it (pz <= near).
+        pz = wp.float64(1.0)
+    # Everything below is written in camera-space vectors so that no term is a difference of
+    # large pixel-scaled quantities: g(t) = t.z p / p.z - t, E0 = (K g)_x, E1 = (K g)_y, and
+    # with n' = t_u x t_v the plane-intersection denominator is
+    # c2 = fy n'.x dx + (fx n'.y - s n'.x) dy + fx fy (p . n') / p.z.
+    gu = p * (tu[2] / pz) - tu
+    gv = p * (tv[2] / pz) - tv
+    nn = wp.cross(tu, tv)
+    h2[i] = wp.vec3(wp.vec3d(tu[2], tv[2], p[2]))
+    e0[i] = wp.vec2(wp.vec2d(fx * gu[0] + sk * gu[1], fx * gv[0] + sk * gv[1]))
+    e1[i] = wp.vec2(wp.vec2d(fy * gu[1], fy * gv[1]))
+    pqd[i] = wp.vec3(wp.vec3d(fy * nn[0], fx * nn[1] - sk * nn[0], fx * fy * wp.dot(p, nn) / pz))
+    m = wp.vec2d(fx * p[0] / pz + sk * p[1] / pz + K[0, 2], fy * p[1] / pz + K[1, 2])
+    centers[i] = wp.vec2(m)
+    center_frac[i] = wp.vec2(wp.vec2d(m[0] - wp.floor(m[0]), m[1] - wp.floor(m[1])))
+    # Face the camera: n . (camera - centre) > 0, i.e. (R_cw n) . p < 0 in camera space.
+    if wp.dot(Rcw @ nw, p) > wp.float64(0.0):
+        nw = -nw
+    normals[i] = wp.vec3(nw)
+
+
+@wp.kernel(enable_backward=False)
+def surfel_bounds(
+    h2: wp.array(dtype=wp.vec3),
+    e0: wp.array(dtype=wp.vec2),
+    e1: wp.array(dtype=wp.vec2),
+    centers: wp.array(dtype=wp.vec2),
+    opacities: wp.array(dtype=float),
+    near: float,
+    width: int,
+    height: int,
+    boxes: wp.array(dtype=wp.vec4i),  # [N] inclusive pixel box (x0, y0, x1, y1); x1 < x0 if culled
+    counts: wp.array(dtype=wp.int32),  # [N] number of pixel blocks the box touches
+    depths: wp.array(dtype=float),  # [N] camera depth of the centre (sort key)
+):
+    i = wp.tid()
+    boxes[i] = wp.vec4i(0, 0, -1, -1)
+    counts[i] = 0
+    depths[i] = _BIG
+    o = opacities[i]
+    if not (o * 255.0 >= 1.0):  # also catches NaN
+        return
+    # alpha >= ALPHA_MIN  <=>  rho <= r2 (the cap only lowers alpha).
+    r2 = 2.0 * wp.log(o * 255.0)
+    H2 = h2[i]
+    pz = H2[2]
+    tz2 = H2[0] * H2[0] + H2[1] * H2[1]
+    # The cut-off disk must lie wholly beyond the near plane: its depth spans pz +- r |tz|.
+    if pz <= near or (pz - near) * (pz - near) <= r2 * tz2:
+        return
+    c22 = r2 * tz2 - pz * pz  # < 0 here
+    m = centers[i]
+    E0 = e0[i]
+    E1 = e1[i]
+    # Box of the projected disk relative to m, from the dual conic H diag(r2, r2, -1) H^T
+    # with rows H0 - m_x H2 = -E0, H1 - m_y H2 = -E1.
+    cx = -r2 * (E0[0] * H2[0] + E0[1] * H2[1]) / c22
+    cy = -r2 * (E1[0] * H2[0] + E1[1] * H2[1]) / c22
+    hx = wp.sqrt(wp.max(cx * cx - r2 * (E0[0] * E0[0] + E0[1] * E0[1]) / c22, 0.0))
+    hy = wp.sqrt(wp.max(cy * cy - r2 * (E1[0] * E1[0] + E1[1] * E1[1]) / c22, 0.0))
+    r2d = wp.sqrt(0.5 * r2)  # low-pass term: 2 |d|^2 <= r2
+    xmin = m[0] + wp.min(cx - hx, -r2d)
+    xmax = m[0] + wp.max(cx + hx, r2d)
+    ymin = m[1] + wp.min(cy - hy, -r2d)
+    ymax = m[1] + wp.max(cy + hy, r2d)
+    # Pixel column j has its centre at j + 0.5. Clamp before int conversion (huge boxes).
+    lim = float(4 * (width + height) + 64)
+    x0 = wp.max(int(wp.floor(wp.clamp(xmin - 0.5, -lim, lim))) - _BOX_MARGIN, 0)
+    x1 = wp.min(int(wp.ceil(wp.clamp(xmax - 0.5, -lim, lim))) + _BOX_MARGIN, width - 1)
+    y0 = wp.max(int(wp.floor(wp.clamp(ymin - 0.5, -lim, lim))) - _BOX_MARGIN, 0)
+    y1 = wp.min(int(wp.ceil(wp.clamp(ymax - 0.5, -lim, lim))) + _BOX_MARGIN, height - 1)
+    if x1 < x0 or y1 < y0:
+        return
+    boxes[i] = wp.vec4i(x0, y0, x1, y1)
+    counts[i] = (x1 // _BLOCK - x0 // _BLOCK + 1) * (y1 // _BLOCK - y0 // _BLOCK + 1)
+    depths[i] = pz
+
+
+@wp.kernel(enable_backward=False)
+def gather_counts(
+    order: wp.array(dtype=wp.int32),  # [N] surfel ids sorted by depth
+    counts: wp.array(dtype=wp.int32),  # [N] per surfel
+    sorted_counts: wp.array(dtype=wp.int32),  # [N] per depth rank
+):
+    j = wp.tid()
+    sorted_counts[j] = counts[order[j]]
+
+
+@wp.func
+def _block_key(bx: int, by: int, tiles_x: int):
+    """List key of pixel block (bx, by): tile-major, then block within the tile."""
+    tile = (by // _BLOCKS_X) * tiles_x + bx // _BLOCKS_X
+    return tile * (_BLOCKS_X * _BLOCKS_X) + (by % _BLOCKS_X) * _BLOCKS_X + bx % _BLOCKS_X
+
+
+@wp.kernel(enable_backward=False)
+def emit_intersections(
+    order: wp.array(dtype=wp.int32),  # [N] surfel ids sorted by depth
+    boxes: wp.array(dtype=wp.vec4i),
+    offsets: wp.array(dtype=wp.int32),  # [N] exclusive scan of sorted counts
+    sorted_counts: wp.array(dtype=wp.int32),
+    tiles_x: int,
+    keys: wp.array(dtype=wp.int32),  # [>= 2 * total] list key of each pair
+    ranks: wp.array(dtype=wp.int32),  # [>= 2 * total] depth rank of each pair
+):
+    j = wp.tid()
+    if sorted_counts[j] == 0:
+        return
+    b = boxes[order[j]]
+    off = offsets[j]
+    for by in range(b[1] // _BLOCK, b[3] // _BLOCK + 1):
+        for bx in range(b[0] // _BLOCK, b[2] // _BLOCK + 1):
+            keys[off] = _block_key(bx, by, tiles_x)
+            ranks[off] = j
+            off += 1
+
+
+@wp.kernel(enable_backward=False)
+def block_ranges(
+    keys: wp.array(dtype=wp.int32),  # sorted
+    count: int,
+    list_start: wp.array(dtype=wp.int32),  # [num_keys], zero-initialised
+    list_end: wp.array(dtype=wp.int32),  # [num_keys], zero-initialised
+):
+    k = wp.tid()
+    t = keys[k]
+    if k == 0:
+        list_start[t] = 0
+    elif keys[k - 1] != t:
+        list_start[t] = k
+    if k == count - 1:
+        list_end[t] = count
+    elif keys[k + 1] != t:
+        list_end[t] = k + 1
+
+
+@wp.kernel(enable_backward=False)
+def pack_splats(
+    order: wp.array(dtype=wp.int32),  # [N] surfel ids sorted by depth
+    boxes: wp.array(dtype=wp.vec4i),
+    h2: wp.array(dtype=wp.vec3),
+    e0: wp.array(dtype=wp.vec2),
+    e1: wp.array(dtype=wp.vec2),
+    pqd: wp.array(dtype=wp.vec3),
+    centers: wp.array(dtype=wp.vec2),
+    center_frac: wp.array(dtype=wp.vec2),
+    normals: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    colors: wp.array(dtype=wp.vec3),
+    ranked_boxes: wp.array(dtype=wp.vec4i),  # [N] by depth rank
+    ranked_splats: wp.array(dtype=splat_record),  # [N] by depth rank
+):
+    j = wp.tid()
+    i = order[j]
+    ranked_boxes[j] = boxes[i]
+    m = centers[i]
+    f = center_frac[i]
+    # floor(m) of the float64 centre: m32 - frac is within an ulp of that integer.
+    mi = wp.vec2(wp.round(m[0] - f[0]), wp.round(m[1] - f[1]))
+    H2 = h2[i]
+    E0 = e0[i]
+    E1 = e1[i]
+    c2 = pqd[i]
+    c = colors[i]
+    n = normals[i]
+    ranked_splats[j] = splat_record(
+        mi[0], mi[1], f[0], f[1], H2[0], H2[1], H2[2], E0[0], E0[1], E1[0], E1[1], c2[0], c2[1], c2[2],
+        opacities[i], c[0], c[1], c[2], n[0], n[1], n[2], 0.0, 0.0, 0.0,
+    )  # fmt: skip
+
+
+@wp.func
+def _pixel_of_thread(tid: int, width: int, tiles_x: int):
+    """(x, y, list key) of a thread. Threads are ordered like the keys (tile-major, then
+    block), so the threads that share a list run back to back."""
+    per_tile = _TILE * _TILE
+    tile = tid // per_tile
+    local = tid - tile * per_tile
+    block = local // (_BLOCK * _BLOCK)
+    within = local - block * (_BLOCK * _BLOCK)
+    x = (tile % tiles_x) * _TILE + (block % _BLOCKS_X) * _BLOCK + within % _BLOCK
+    y = (tile // tiles_x) * _TILE + (block // _BLOCKS_X) * _BLOCK + within // _BLOCK
+    return wp.vec3i(x, y, tile * (_BLOCKS_X * _BLOCKS_X) + block)
+
+
+@wp.func
+def _outside(x: int, y: int, b: wp.vec4i):
+    # Branch-free: any negative difference sets the sign bit of the OR.
+    return ((x - b[0]) | (b[2] - x) | (y - b[1]) | (b[3] - y)) < 0
+
+
+@wp.func
+def _splat_at(r: splat_record, dx: float, dy: float):
+    """(rho, z, u, v, 1 if the object-space term is active else 0) of a splat at a pixel
+    offset (dx, dy) from its centre; shared by forward and backward so both take the same
+    branch and the same alpha.
+
+    The intersection c = a x b of the planes a = dx H2 + E0, b = dy H2 + E1 is expanded by
+    hand: its dx dy terms cancel exactly, so c0 = pz (dy E0y - dx E1y),
+    c1 = pz (dx E1x - dy E0x), c2 = P dx + Q dy + D."""
+    c0 = r[6] * (dy * r[8] - dx * r[10])
+    c1 = r[6] * (dx * r[9] - dy * r[7])
+    c2 = dx * r[11] + dy * r[12] + r[13]
+    rho2d = 2.0 * (dx * dx + dy * dy)
+    out = _vec5(rho2d, r[6], 0.0, 0.0, 0.0)
+    if c2 != 0.0:
+        u = c0 / c2
+        v = c1 / c2
+        rho3d = u * u + v * v
+        if rho3d <= rho2d:
+            out = _vec5(rho3d, r[4] * u + r[5] * v + r[6], u, v, 1.0)
+    return out
+
+
+@wp.kernel(enable_backward=False)
+def rasterize_forward(
+    list_start: wp.array(dtype=wp.int32),  # [num_keys]
+    list_end: wp.array(dtype=wp.int32),  # [num_keys]
+    list_ranks: wp.array(dtype=wp.int32),  # [total] depth rank of each list entry
+    ranked_boxes: wp.array(dtype=wp.vec4i),  # [N]
+    ranked_splats: wp.array(dtype=splat_record),  # [N]
+    background: wp.vec3,
+    width: int,
+    height: int,
+    tiles_x: int,
+    out_rgb: wp.array(dtype=wp.vec3),  # [H*W]
+    out_alpha: wp.array(dtype=float),  # [H*W]
+    out_normal: wp.array(dtype=wp.vec3),  # [H*W]
+    out_depth: wp.array(dtype=float),  # [H*W]
+    out_median: wp.array(dtype=float),  # [H*W]
+    out_dist: wp.array(dtype=float),  # [H*W]
+    out_trans: wp.array(dtype=float),  # [H*W] final transmittance
+    out_last: wp.array(dtype=wp.int32),  # [H*W] end (exclusive) of the composited list
+    out_median_pos: wp.array(dtype=wp.int32),  # [H*W] list position of the median, -1 if none
+    out_m2: wp.array(dtype=float),  # [H*W] sum w z^2 (for the distortion gradient)
+):
+    pxy = _pixel_of_thread(wp.tid(), width, tiles_x)
+    x = pxy[0]
+    y = pxy[1]
+    if x >= width or y >= height:
+        return
+    pix = y * width + x
+    start = list_start[pxy[2]]
+    end = list_end[pxy[2]]
+    px = float(x) + 0.5
+    py = float(y) + 0.5
+
+    T = float(1.0)
+    rgb = wp.vec3(0.0)
+    nrm = wp.vec3(0.0)
+    acc_w = float(0.0)
+    acc_wz = float(0.0)
+    acc_wz2 = float(0.0)
+    dist = float(0.0)
+    median = float(0.0)
+    median_pos = int(-1)
+    last = start
+    for k in range(start, end):
+        j = list_ranks[k]
+        if _outside(x, y, ranked_boxes[j]):
+            continue
+        r = ranked_splats[j]
+        e = _splat_at(r, (px - r[0]) - r[2], (py - r[1]) - r[3])
+        alpha = wp.min(_ALPHA_MAX, r[14] * wp.exp(-0.5 * e[0]))
+        if alpha < _ALPHA_MIN:
+            continue
+        t_next = T * (1.0 - alpha)
+        if t_next < _T_MIN:
+            break
+        z = e[1]
+        w = alpha * T
+        rgb += w * wp.vec3(r[15], r[16], r[17])
+        nrm += w * wp.vec3(r[18], r[19], r[20])
+        dist += w * (z * z * acc_w - 2.0 * z * acc_wz + acc_wz2)
+        acc_w += w
+        acc_wz += w * z
+        acc_wz2 += w * z * z
+        if T > _MEDIAN_T:
+            median = z
+            median_pos = k
+        T = t_next
+        last = k + 1
+
+    out_rgb[pix] = rgb + T * background
+    out_alpha[pix] = acc_w
+    out_normal[pix] = nrm
+    out_depth[pix] = acc_wz
+    out_median[pix] = median
+    out_dist[pix] = dist
+    out_trans[pix] = T
+    out_last[pix] = last
+    out_median_pos[pix] = median_pos
+    out_m2[pix] = acc_wz2
+
+
+@wp.kernel(enable_backward=False)
+def rasterize_backward(
+    list_start: wp.array(dtype=wp.int32),
+    list_ranks: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),  # [N] surfel id of each depth rank
+    ranked_boxes: wp.array(dtype=wp.vec4i),
+    ranked_splats: wp.array(dtype=splat_record),
+    background: wp.vec3,
+    width: int,
+    height: int,
+    tiles_x: int,
+    out_alpha: wp.array(dtype=float),
+    out_depth: wp.array(dtype=float),
+    out_trans: wp.array(dtype=float),
+    out_last: wp.array(dtype=wp.int32),
+    out_median_pos: wp.array(dtype=wp.int32),
+    out_m2: wp.array(dtype=float),
+    g_rgb: wp.array(dtype=wp.vec3),  # [H*W] dL/d outputs
+    g_alpha: wp.array(dtype=float),
+    g_normal: wp.array(dtype=wp.vec3),
+    g_depth: wp.array(dtype=float),
+    g_median: wp.array(dtype=float),
+    g_dist: wp.array(dtype=float),
+    d_h2: wp.array(dtype=wp.vec3),  # [N] accumulated dL/d per-surfel quantities
+    d_e0: wp.array(dtype=wp.vec2),
+    d_e1: wp.array(dtype=wp.vec2),
+    d_pqd: wp.array(dtype=wp.vec3),
+    d_centers: wp.array(dtype=wp.vec2),
+    d_normals: wp.array(dtype=wp.vec3),
+    d_opacities: wp.array(dtype=float),
+    d_colors: wp.array(dtype=wp.vec3),
+):
+    pxy = _pixel_of_thread(wp.tid(), width, tiles_x)
+    x = pxy[0]
+    y = pxy[1]
+    if x >= width or y >= height:
+        return
+    pix = y * width + x
+    start = list_start[pxy[2]]
+    last = out_last[pix]
+    px = float(x) + 0.5
+    py = float(y) + 0.5
+
+    dC = g_rgb[pix]
+    dA = g_alpha[pix]
+    dN = g_normal[pix]
+    dD = g_depth[pix]
+    dMed = g_median[pix]
+    dDist = g_dist[pix]
+    A = out_alpha[pix]
+    D = out_depth[pix]
+    M2 = out_m2[pix]
+    median_pos = out_median_pos[pix]
+    T = out_trans[pix]
+    # S = sum over later contributors j of w_j dL/dw_j, plus the background's T_final dL/dT_final.
+    S = T * wp.dot(dC, background)
+
+    for k in range(last - 1, start - 1, -1):
+        j = list_ranks[k]
+        if _outside(x, y, ranked_boxes[j]):
+            continue
+        r = ranked_splats[j]
+        dx = (px - r[0]) - r[2]
+        dy = (py - r[1]) - r[3]
+        e = _splat_at(r, dx, dy)
+        o = r[14]
+        G = wp.exp(-0.5 * e[0])
+        alpha = wp.min(_ALPHA_MAX, o * G)
+        if alpha < _ALPHA_MIN:
+            continue
+        i = order[j]
+        z = e[1]
+        one_minus = 1.0 - alpha
+        T = T / one_minus  # transmittance in front of this surfel
+        w = alpha * T
+        col = wp.vec3(r[15], r[16], r[17])
+        n = wp.vec3(r[18], r[19], r[20])
+        # d loss / d w_k: every output is linear in w_k except the distortion.
+        g = wp.dot(dC, col) + dA + wp.dot(dN, n) + dD * z + dDist * (z * z * A - 2.0 * z * D + M2)
+        d_alpha = T * g - S / one_minus
+        S += w * g
+
+        wp.atomic_add(d_colors, i, w * dC)
+        wp.atomic_add(d_normals, i, w * dN)
+        dz = w * dD + dDist * 2.0 * w * (z * A - D)
+        if k == median_pos:
+            dz += dMed
+        dG = float(0.0)
+        if o * G < _ALPHA_MAX:
+            wp.atomic_add(d_opacities, i, d_alpha * G)
+            dG = d_alpha * o
+        d_rho = -0.5 * G * dG
+        if e[4] > 0.0:
+            # rho = u^2 + v^2, z = H2 . (u, v, 1), (u, v) = (c0, c1) / c2.
+            u = e[2]
+            v = e[3]
+            pz = r[6]
+            inv_c2 = 1.0 / (dx * r[11] + dy * r[12] + r[13])
+            du = d_rho * 2.0 * u + dz * r[4]
+            dv = d_rho * 2.0 * v + dz * r[5]
+            gc0 = du * inv_c2
+            gc1 = dv * inv_c2
+            gc2 = -(du * u + dv * v) * inv_c2
+            # c0 = pz (dy E0y - dx E1y), c1 = pz (dx E1x - dy E0x), c2 = P dx + Q dy + D.
+            d_pz = dz + gc0 * (dy * r[8] - dx * r[10]) + gc1 * (dx * r[9] - dy * r[7])
+            wp.atomic_add(d_h2, i, wp.vec3(dz * u, dz * v, d_pz))
+            wp.atomic_add(d_e0, i, wp.vec2(-gc1 * pz * dy, gc0 * pz * dy))
+            wp.atomic_add(d_e1, i, wp.vec2(gc1 * pz * dx, -gc0 * pz * dx))
+            wp.atomic_add(d_pqd, i, wp.vec3(gc2 * dx, gc2 * dy, gc2))
+            d_dx = pz * (gc1 * r[9] - gc0 * r[10]) + gc2 * r[11]
+            d_dy = pz * (gc0 * r[8] - gc1 * r[7]) + gc2 * r[12]
+            wp.atomic_add(d_centers, i, wp.vec2(-d_dx, -d_dy))
+        else:
+            # rho = 2 (dx^2 + dy^2), z = pz.
+            wp.atomic_add(d_h2, i, wp.vec3(0.0, 0.0, dz))
+            wp.atomic_add(d_centers, i, wp.vec2(-4.0 * d_rho * dx, -4.0 * d_rho * dy))
