@@ -1,0 +1,218 @@
+"""Image and geometry losses shared by the Gaussian stages (method.md §3 and §5).
+
+All functions are plain differentiable torch. Images are ``[H, W, C]`` (channels last, as the
+rasterisers return them) or ``[B, C, H, W]``; colours in [0, 1].
+
+- :func:`ssim` (own implementation: Gaussian window 11, sigma 1.5, valid convolution, the
+  constants of Wang et al. 2004), :func:`psnr`, :func:`l1_dssim_loss` (the photometric loss
+  ``(1 - 0.2) L1 + 0.2 (1 - SSIM)``, method.md §3).
+- :func:`mask_loss`: L1 between rendered opacity and the foreground mask.
+- :func:`depth_to_normal`: world-space normals of the surface a depth map describes.
+- :func:`normal_consistency_loss` and :func:`distortion_loss`: the 2DGS regularisers.
+- :func:`ranked_loss` / :func:`ranked_normal_loss`: the large-error-focused normal loss R(.)
+  of method.md §5 (mean of the largest fraction of per-pixel errors).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+__all__ = [
+    "LAMBDA_DSSIM",
+    "SSIM_WINDOW",
+    "SSIM_SIGMA",
+    "ssim",
+    "psnr",
+    "l1_dssim_loss",
+    "mask_loss",
+    "depth_to_normal",
+    "normal_consistency_loss",
+    "distortion_loss",
+    "ranked_loss",
+    "ranked_normal_loss",
+]
+
+#: Weight of the D-SSIM term in the photometric loss (method.md §3, §5).
+LAMBDA_DSSIM = 0.2
+#: SSIM Gaussian window size and standard deviation (Wang et al. 2004).
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+_SSIM_K1 = 0.01
+_SSIM_K2 = 0.03
+
+
+def _to_bchw(img: torch.Tensor) -> torch.Tensor:
+    if img.ndim == 3:  # [H, W, C]
+        return img.permute(2, 0, 1).unsqueeze(0)
+    if img.ndim == 4:
+        return img
+    raise ValueError(f"expected an image [H, W, C] or [B, C, H, W], got shape {tuple(img.shape)}")
+
+
+def _gaussian_window(size: int, sigma: float, dtype, device) -> torch.Tensor:
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
+    g = torch.exp(-(x**2) / (2.0 * sigma**2))
+    return g / g.sum()
+
+
+def ssim(
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    *,
+    data_range: float = 1.0,
+    window_size: int = SSIM_WINDOW,
+    sigma: float = SSIM_SIGMA,
+    reduce: bool = True,
+) -> torch.Tensor:
+    """Structural similarity of two images (same shape, ``[H, W, C]`` or ``[B, C, H, W]``).
+
+    Gaussian-weighted local statistics with a separable window and *valid* convolution (no
+    padding), the convention of Wang et al.'s reference code and ``pytorch-msssim``.
+
+    Returns:
+        the mean SSIM (scalar) if ``reduce``, else the SSIM map ``[B, C, H', W']``.
+    """
+    if img1.shape != img2.shape:
+        raise ValueError(f"ssim: image shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
+    x, y = _to_bchw(img1), _to_bchw(img2)
+    c = x.shape[1]
+    if min(x.shape[-2:]) < window_size:
+        raise ValueError(f"ssim: images {tuple(x.shape[-2:])} are smaller than the {window_size}-pixel window")
+    g = _gaussian_window(window_size, sigma, x.dtype, x.device)
+    wx = g.view(1, 1, 1, -1).expand(c, 1, 1, window_size)
+    wy = g.view(1, 1, -1, 1).expand(c, 1, window_size, 1)
+
+    def blur(t):
+        return F.conv2d(F.conv2d(t, wx, groups=c), wy, groups=c)
+
+    mu_x, mu_y = blur(x), blur(y)
+    sxx = blur(x * x) - mu_x * mu_x
+    syy = blur(y * y) - mu_y * mu_y
+    sxy = blur(x * y) - mu_x * mu_y
+    c1 = (_SSIM_K1 * data_range) ** 2
+    c2 = (_SSIM_K2 * data_range) ** 2
+    cs = (2.0 * sxy + c2) / (sxx + syy + c2)
+    smap = ((2.0 * mu_x * mu_y + c1) / (mu_x * mu_x + mu_y * mu_y + c1)) * cs
+    return smap.mean() if reduce else smap
+
+
+def psnr(pred: torch.Tensor, target: torch.Tensor, *, data_range: float = 1.0) -> torch.Tensor:
+    """Peak signal-to-noise ratio in dB over all elements (inf for identical images)."""
+    mse = torch.mean((pred - target) ** 2)
+    return 10.0 * torch.log10(data_range**2 / mse)
+
+
+def l1_dssim_loss(pred: torch.Tensor, target: torch.Tensor, *, lambda_dssim: float = LAMBDA_DSSIM) -> torch.Tensor:
+    """``(1 - lambda) L1 + lambda (1 - SSIM)`` (method.md §3; lambda = 0.2)."""
+    l1 = (pred - target).abs().mean()
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim(pred, target))
+
+
+def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean ``|alpha - mask|`` of rendered opacity [H, W] against the foreground mask [H, W]."""
+    return (alpha - mask).abs().mean()
+
+
+def depth_to_normal(depth: torch.Tensor, K: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
+    """World-space unit normals of the surface described by a camera-z depth map.
+
+    Each pixel centre is unprojected to ``z K^-1 (x + 0.5, y + 0.5, 1)`` and moved to world
+    coordinates; the normal is the cross product of the central differences along y and x,
+    oriented towards the camera (OpenCV axes). Border pixels, and pixels whose neighbours
+    have no depth (``<= 0``), get a zero normal.
+
+    Args:
+        depth: camera z in metres (not ray length). [H, W]
+        K: intrinsics. [3, 3]
+        viewmat: world-to-camera. [4, 4]
+
+    Returns:
+        normals [H, W, 3] in world coordinates.
+    """
+    h, w = depth.shape
+    K = K.to(depth)
+    viewmat = viewmat.to(depth)
+    ys, xs = torch.meshgrid(
+        torch.arange(h, dtype=depth.dtype, device=depth.device) + 0.5,
+        torch.arange(w, dtype=depth.dtype, device=depth.device) + 0.5,
+        indexing="ij",
+    )
+    y_cam = (ys - K[1, 2]) / K[1, 1]
+    x_cam = (xs - K[0, 2] - K[0, 1] * y_cam) / K[0, 0]
+    pts_cam = torch.stack([x_cam, y_cam, torch.ones_like(xs)], dim=-1) * depth[..., None]
+    R = viewmat[:3, :3]
+    t = viewmat[:3, 3]
+    pts = (pts_cam - t) @ R  # R^T (p - t)
+    d_dy = pts[2:, 1:-1] - pts[:-2, 1:-1]
+    d_dx = pts[1:-1, 2:] - pts[1:-1, :-2]
+    n = torch.linalg.cross(d_dy, d_dx, dim=-1)  # faces the camera for OpenCV axes
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    valid = (depth[2:, 1:-1] > 0) & (depth[:-2, 1:-1] > 0) & (depth[1:-1, 2:] > 0) & (depth[1:-1, :-2] > 0)
+    out = torch.zeros(h, w, 3, dtype=depth.dtype, device=depth.device)
+    out[1:-1, 1:-1] = n * valid[..., None]
+    return out
+
+
+def normal_consistency_loss(
+    rendered_normal: torch.Tensor, surface_normal: torch.Tensor, *, weight: torch.Tensor | None = None
+) -> torch.Tensor:
+    """2DGS normal consistency: mean over pixels of ``weight * (1 - <n_rendered, n_surface>)``.
+
+    Args:
+        rendered_normal: alpha-weighted sum of surfel normals (as rendered). [H, W, 3]
+        surface_normal: normals from the rendered depth (:func:`depth_to_normal`), usually
+            multiplied by the detached rendered opacity as in 2DGS. [H, W, 3]
+        weight: optional per-pixel weight. [H, W]
+    """
+    err = 1.0 - (rendered_normal * surface_normal).sum(-1)
+    if weight is not None:
+        err = err * weight
+    return err.mean()
+
+
+def distortion_loss(distortion: torch.Tensor, *, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean of the rendered 2DGS depth-distortion map [H, W] (optionally weighted)."""
+    return (distortion if weight is None else distortion * weight).mean()
+
+
+def ranked_loss(errors: torch.Tensor, *, mask: torch.Tensor | None = None, top_fraction: float = 0.5) -> torch.Tensor:
+    """Large-error-focused mean: the mean of the largest ``top_fraction`` of ``errors``.
+
+    This is the ranking operator R(.) of method.md §5: small errors (already fitted pixels,
+    noise) are ignored and the gradient concentrates on the worst pixels. ``top_fraction=1``
+    is the plain mean. Pixels outside ``mask`` are ignored; no valid pixel gives 0.
+    """
+    if not 0.0 < top_fraction <= 1.0:
+        raise ValueError(f"ranked_loss: top_fraction must be in (0, 1], got {top_fraction}")
+    e = errors.reshape(-1)
+    if mask is not None:
+        e = e[mask.reshape(-1).bool()]
+    if e.numel() == 0:
+        return errors.sum() * 0.0
+    k = max(1, int(math.ceil(top_fraction * e.numel())))
+    return torch.topk(e, k, sorted=False).values.mean()
+
+
+def ranked_normal_loss(
+    n1: torch.Tensor,
+    n2: torch.Tensor,
+    *,
+    mask: torch.Tensor | None = None,
+    top_fraction: float = 0.5,
+) -> torch.Tensor:
+    """``R(1 - cos(n1, n2))`` over pixels [H, W, 3] (method.md §5 L_normal / L_prior).
+
+    Normals need not be unit length (rendered normals are alpha-weighted); the cosine
+    normalises them. Pixels where either normal is zero count as valid only if ``mask``
+    says so; by default they are skipped.
+    """
+    l1 = n1.norm(dim=-1)
+    l2 = n2.norm(dim=-1)
+    cos = (n1 * n2).sum(-1) / (l1 * l2).clamp_min(1e-12)
+    valid = (l1 > 1e-8) & (l2 > 1e-8)
+    if mask is not None:
+        valid = valid & mask.bool()
+    return ranked_loss(1.0 - cos, mask=valid, top_fraction=top_fraction)

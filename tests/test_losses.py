@@ -1,0 +1,113 @@
+"""Losses of holowarp.losses against independent implementations and analytic cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from holowarp.camera import intrinsics_from_fov, look_at
+from holowarp.losses import (
+    depth_to_normal,
+    distortion_loss,
+    l1_dssim_loss,
+    mask_loss,
+    normal_consistency_loss,
+    psnr,
+    ranked_loss,
+    ranked_normal_loss,
+    ssim,
+)
+
+
+def test_ssim_matches_pytorch_msssim_values_and_gradients(rng):
+    pytorch_msssim = pytest.importorskip("pytorch_msssim")
+    a = torch.tensor(rng.uniform(0, 1, (40, 36, 3)), requires_grad=True)
+    b = (a.detach() + torch.tensor(rng.normal(0, 0.1, (40, 36, 3)))).clamp(0, 1)
+    ours = ssim(a, b)
+    ours.backward()
+    g_ours = a.grad.clone()
+    a.grad = None
+    ref = pytorch_msssim.ssim(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], data_range=1.0,
+                              win_size=11, win_sigma=1.5)  # fmt: skip
+    ref.backward()
+    # pytorch-msssim builds its window in float32, hence 1e-7 rather than float64 round-off.
+    assert float(ours.detach()) == pytest.approx(float(ref.detach()), abs=1e-7)
+    assert torch.allclose(g_ours, a.grad, atol=1e-7)
+    assert float(ssim(b, b)) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_psnr_and_l1_dssim_on_known_images():
+    a = torch.zeros(16, 16, 3)
+    b = torch.full((16, 16, 3), 0.1)
+    assert float(psnr(a, b)) == pytest.approx(20.0, abs=1e-4)  # mse 0.01
+    # Constant images: SSIM = (c1 / (0.01 + c1)) * 1 from the luminance term alone.
+    c1 = 0.01**2
+    s = c1 / (0.1**2 + c1)
+    assert float(ssim(a, b)) == pytest.approx(s, rel=1e-5)
+    assert float(l1_dssim_loss(a, b)) == pytest.approx(0.8 * 0.1 + 0.2 * (1 - s), rel=1e-5)
+    assert float(mask_loss(torch.ones(4, 4), torch.zeros(4, 4))) == 1.0
+
+
+@pytest.mark.parametrize("tilt", [0.0, 0.6])
+def test_depth_to_normal_recovers_a_plane_normal_facing_the_camera(rng, tilt):
+    w, h = 40, 30
+    eye = np.array([0.3, -2.5, 0.8])
+    V = look_at(eye)
+    K = intrinsics_from_fov(math.radians(45), w, h)
+    # World plane through the origin with normal n (either orientation).
+    n = np.array([math.sin(tilt), -math.cos(tilt), 0.2])
+    n /= np.linalg.norm(n)
+    if rng.uniform() < 0.5:
+        n = -n
+    # Camera-z depth of the plane at every pixel: ray x = eye + t d_world, n . x = 0.
+    ys, xs = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
+    d_cam = np.stack([(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], np.ones_like(xs)], -1)
+    d_world = d_cam @ V[:3, :3]  # R^T d, with d_cam.z = 1 so t is the camera depth
+    depth = -(eye @ n) / (d_world @ n)
+    normals = depth_to_normal(torch.tensor(depth), torch.tensor(K), torch.tensor(V))
+    facing = n if (eye @ n) > 0 else -n  # towards the camera
+    inner = normals[1:-1, 1:-1].reshape(-1, 3).numpy()
+    assert np.allclose(inner, facing, atol=1e-8)
+    assert float(normals[0].abs().max()) == 0.0  # border
+
+
+def test_normal_consistency_and_distortion_losses():
+    n = torch.nn.functional.normalize(torch.randn(8, 8, 3, dtype=torch.float64), dim=-1)
+    assert float(normal_consistency_loss(n, n)) == pytest.approx(0.0, abs=1e-12)
+    assert float(normal_consistency_loss(n, -n)) == pytest.approx(2.0, abs=1e-12)
+    w = torch.zeros(8, 8, dtype=torch.float64)
+    w[:4] = 1.0
+    assert float(normal_consistency_loss(n, -n, weight=w)) == pytest.approx(1.0, abs=1e-12)
+    d = torch.rand(8, 8)
+    assert float(distortion_loss(d)) == pytest.approx(float(d.mean()))
+
+
+def test_ranked_loss_averages_only_the_largest_errors(rng):
+    e = torch.tensor(rng.uniform(0, 1, 100), requires_grad=True)
+    loss = ranked_loss(e, top_fraction=0.1)
+    top = torch.sort(e.detach(), descending=True).values[:10]
+    assert float(loss) == pytest.approx(float(top.mean()))
+    loss.backward()
+    assert int((e.grad != 0).sum()) == 10  # the gradient goes to the worst pixels only
+    assert float(ranked_loss(e.detach(), top_fraction=1.0)) == pytest.approx(float(e.detach().mean()))
+    mask = torch.zeros(100, dtype=torch.bool)
+    assert float(ranked_loss(e.detach(), mask=mask)) == 0.0
+    with pytest.raises(ValueError, match="top_fraction"):
+        ranked_loss(e, top_fraction=0.0)
+
+
+def test_ranked_normal_loss_is_scale_invariant_and_skips_empty_pixels():
+    a = torch.nn.functional.normalize(torch.randn(6, 6, 3, dtype=torch.float64), dim=-1)
+    b = torch.nn.functional.normalize(torch.randn(6, 6, 3, dtype=torch.float64), dim=-1)
+    ref = ranked_normal_loss(a, b, top_fraction=1.0)
+    cos = (a * b).sum(-1)
+    assert float(ref) == pytest.approx(float((1 - cos).mean()))
+    # Alpha-weighted (non-unit) rendered normals give the same cosine.
+    assert float(ranked_normal_loss(0.3 * a, b, top_fraction=1.0)) == pytest.approx(float(ref))
+    a0 = a.clone()
+    a0[0] = 0.0  # uncovered row: skipped
+    expected = (1 - cos[1:]).mean()
+    assert float(ranked_normal_loss(a0, b, top_fraction=1.0)) == pytest.approx(float(expected))
