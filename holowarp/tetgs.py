@@ -80,8 +80,8 @@ class TetGaussians:
         self.s = float(s)
         self.kappa_clamp = (float(kappa_clamp[0]), float(kappa_clamp[1]))
         self.scale_factor = float(scale_factor)
-        self.vertices = P(torch.as_tensor(mesh.vertices, dtype=torch.float32, device=dev).clone())
-        self.tets = torch.as_tensor(mesh.tets, dtype=torch.int64, device=dev).clone()
+        self.vertices = P(torch.tensor(np.array(mesh.vertices), dtype=torch.float32, device=dev))
+        self.tets = torch.tensor(np.array(mesh.tets), dtype=torch.int64, device=dev)
         if phi is None:
             phi = np.full(V, -0.3)
         self.phi = P(torch.as_tensor(np.asarray(phi), dtype=torch.float32, device=dev).clone())

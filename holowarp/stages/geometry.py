@@ -22,8 +22,13 @@ minimises
 
 Vertices are optimised with :class:`holowarp.optim.UniformAdam` (per-step displacement cap)
 and the cosine lr 2e-4 -> 1e-4. Orientation is guaranteed, not only penalised: after each
-step, vertices of tets that the step inverted are put back (repeated until no tet is newly
-inverted), so no step leaves more inverted tets than it found.
+step, vertices of tets that the step inverted or shrank below ``min_volume_fraction`` of
+their block-start volume are put back (repeated until no tet newly crosses that floor), so
+no step leaves more inverted tets than it found and no slivers form.
+
+Units: the image terms are per-pixel means; ``L_HC`` is measured in squared mean edge
+lengths (of the block-start mesh) and ``L_w`` on dimensionless deformation gradients, so the
+balance does not depend on the object's size or the mesh resolution.
 """
 
 from __future__ import annotations
@@ -52,21 +57,26 @@ def signed_volumes_t(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
     return torch.linalg.det(torch.stack([b - a, c - a, d - a], dim=-1)) / 6.0
 
 
-def revert_inverting_moves(x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, *, max_rounds: int = 20) -> int:
-    """Undo, in place, the moves of vertices whose tets this step turned non-positive.
+def revert_inverting_moves(
+    x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, *, floor=None, max_rounds: int = 20
+) -> int:
+    """Undo, in place, the moves of vertices whose tets this step inverted or collapsed.
 
-    A tet that was positive before (volume > 0 at ``x_old``) and is not at ``x_new`` gets
-    its four vertices put back to ``x_old``; repeated until no tet is newly inverted
-    (reverting one tet can invert a neighbour), with a full revert as the last resort.
+    A tet whose volume at ``x_old`` was above its ``floor`` (M,) (default 0) and is not at
+    ``x_new`` gets its four vertices put back to ``x_old``; repeated until no tet newly
+    crosses its floor (reverting one tet can push a neighbour under), with a full revert as
+    the last resort. A positive floor (a fraction of each tet's rest volume) keeps slivers
+    from forming: their huge deformation gradients would otherwise dominate the energies.
 
     Returns:
         the number of vertices reverted.
     """
     with torch.no_grad():
-        was_ok = signed_volumes_t(x_old, tets) > 0
+        f = 0.0 if floor is None else floor
+        was_ok = signed_volumes_t(x_old, tets) > f
         reverted = torch.zeros(x_new.shape[0], dtype=torch.bool, device=x_new.device)
         for _ in range(max_rounds):
-            bad = was_ok & ~(signed_volumes_t(x_new, tets) > 0)
+            bad = was_ok & ~(signed_volumes_t(x_new, tets) > f)
             if not bool(bad.any()):
                 return int(reverted.sum())
             idx = tets[bad].reshape(-1)
@@ -159,6 +169,8 @@ def run_geometry_block(
     masks = torch.as_tensor(dataset.masks, device=dev)
     cache: dict = {}
     tets = model.tets
+    with torch.no_grad():
+        floor = config.min_volume_fraction * signed_volumes_t(rest, tets).clamp_min(0)
     reverted_total = 0
     t0 = time.perf_counter()
     last = {}
@@ -181,7 +193,7 @@ def run_geometry_block(
         lam = mesh_lambda(t, total_mesh_iters)
         second_half = k >= block_iters // 2
         lam_cond = 1.0 if (not config.two_stage_hc or second_half) else 0.0
-        l_hc = energies.hc_laplacian(x, bf_np, lam_cond=lam_cond)
+        l_hc = energies.hc_laplacian(x, bf_np, lam_cond=lam_cond) / mean_edge**2
         l_w = energies.biharmonic(x)
         p = p0 + (p1 - p0) * (t / max(total_mesh_iters - 1, 1))
         l_inv = energies.inversion_penalty(x, p=p)
@@ -197,7 +209,7 @@ def run_geometry_block(
         loss.backward()
         x_old = x.detach().clone()
         opt.step()
-        reverted_total += revert_inverting_moves(x.data, x_old, tets)
+        reverted_total += revert_inverting_moves(x.data, x_old, tets, floor=floor)
         last = {
             "loss": float(loss.detach()),
             "mask": float(l_mask.detach()),
