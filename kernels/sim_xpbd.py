@@ -66,24 +66,51 @@ def _surface_point(s: int, surf_start: wp.array(dtype=wp.vec3), surf_end: wp.arr
 
 
 @wp.func
-def _project_contacts(
+def _contact(
     i: int,
     x: wp.vec3,
+    x_start: wp.vec3,
     surf_normal: wp.array(dtype=wp.vec3),
     surf_start: wp.array(dtype=wp.vec3),
     surf_end: wp.array(dtype=wp.vec3),
-    alpha: float,
+    alpha0: float,
+    alpha1: float,
     n_surf: int,
+    surf_friction: wp.array(dtype=float),
     contact_depth: wp.array2d(dtype=float),
+    contact_friction: wp.array2d(dtype=wp.vec3),
 ):
-    """Push ``x`` out of every half-space it penetrates; accumulate the correction depth."""
+    """Push ``x`` out of every half-space it penetrates and apply Coulomb friction.
+
+    ``contact_depth[i, s]`` accumulates the normal correction of this substep (the normal
+    impulse times dt / m). ``contact_friction[i, s]`` is the tangential correction applied so
+    far; each call replaces it by the Coulomb-limited cancellation of the slip the particle
+    would have without it (static: all of it, kinetic: ``mu * depth`` of it), so repeated
+    calls during the iterations converge with the elastic solve instead of piling up.
+    """
     y = x
     for s in range(n_surf):
         n = surf_normal[s]
-        d = wp.dot(y - _surface_point(s, surf_start, surf_end, alpha), n)
+        d = wp.dot(y - _surface_point(s, surf_start, surf_end, alpha1), n)
         if d < 0.0:
             y = y - d * n
             contact_depth[i, s] = contact_depth[i, s] - d
+        depth = contact_depth[i, s]
+        if depth > 0.0:
+            f_old = contact_friction[i, s]
+            disp_s = (surf_end[s] - surf_start[s]) * (alpha1 - alpha0)
+            rel = (y - x_start) - disp_s
+            slip = rel - wp.dot(rel, n) * n - f_old  # tangential slip without friction
+            ls = wp.length(slip)
+            lim = surf_friction[s] * depth
+            f_new = wp.vec3(0.0)
+            if ls > 0.0:
+                if ls <= lim:
+                    f_new = -slip  # static: no slip
+                else:
+                    f_new = -slip * (lim / ls)  # kinetic: slip reduced by mu * depth
+            y = y + (f_new - f_old)
+            contact_friction[i, s] = f_new
     return y
 
 
@@ -99,6 +126,7 @@ def sim_predict(
     q_start: wp.array(dtype=wp.vec3),  # [N]
     qd_start: wp.array(dtype=wp.vec3),  # [N]
     contact_depth: wp.array2d(dtype=float),  # [N, S]
+    contact_friction: wp.array2d(dtype=wp.vec3),  # [N, S]
 ):
     i = wp.tid()
     x = q_in[i]
@@ -111,6 +139,7 @@ def sim_predict(
     q_out[i] = x
     for s in range(n_surf):
         contact_depth[i, s] = 0.0
+        contact_friction[i, s] = wp.vec3(0.0)
 
 
 @wp.func
@@ -134,12 +163,16 @@ def sim_solve_tets(
     lambdas: wp.array(dtype=wp.vec2),  # [M] accumulated XPBD multipliers (dev, hyd)
     first_iteration: int,
     inv_dt2: float,
+    q_start: wp.array(dtype=wp.vec3),  # [N] positions at the substep's start
     surf_normal: wp.array(dtype=wp.vec3),  # [S]
-    surf_start: wp.array(dtype=wp.vec3),  # [S]
-    surf_end: wp.array(dtype=wp.vec3),  # [S]
-    alpha: float,
+    surf_start: wp.array(dtype=wp.vec3),  # [S] surface points at the start of the STEP
+    surf_end: wp.array(dtype=wp.vec3),  # [S] surface points at the end of the STEP
+    alpha0: float,  # fraction of the step at the substep's start
+    alpha1: float,  # fraction of the step at the substep's end
     n_surf: int,
+    surf_friction: wp.array(dtype=float),  # [S]
     contact_depth: wp.array2d(dtype=float),  # [N, S]
+    contact_friction: wp.array2d(dtype=wp.vec3),  # [N, S]
 ):
     t = order[offset + wp.tid()]
     i0 = tet_indices[t, 0]
@@ -235,13 +268,17 @@ def sim_solve_tets(
 
     if n_surf > 0:
         if w0 > 0.0:
-            x0 = _project_contacts(i0, x0, surf_normal, surf_start, surf_end, alpha, n_surf, contact_depth)
+            x0 = _contact(i0, x0, q_start[i0], surf_normal, surf_start, surf_end, alpha0, alpha1, n_surf,
+                          surf_friction, contact_depth, contact_friction)
         if w1 > 0.0:
-            x1 = _project_contacts(i1, x1, surf_normal, surf_start, surf_end, alpha, n_surf, contact_depth)
+            x1 = _contact(i1, x1, q_start[i1], surf_normal, surf_start, surf_end, alpha0, alpha1, n_surf,
+                          surf_friction, contact_depth, contact_friction)
         if w2 > 0.0:
-            x2 = _project_contacts(i2, x2, surf_normal, surf_start, surf_end, alpha, n_surf, contact_depth)
+            x2 = _contact(i2, x2, q_start[i2], surf_normal, surf_start, surf_end, alpha0, alpha1, n_surf,
+                          surf_friction, contact_depth, contact_friction)
         if w3 > 0.0:
-            x3 = _project_contacts(i3, x3, surf_normal, surf_start, surf_end, alpha, n_surf, contact_depth)
+            x3 = _contact(i3, x3, q_start[i3], surf_normal, surf_start, surf_end, alpha0, alpha1, n_surf,
+                          surf_friction, contact_depth, contact_friction)
 
     q[i0] = x0
     q[i1] = x1
@@ -265,6 +302,7 @@ def sim_finalize(
     surf_restitution: wp.array(dtype=float),  # [S]
     n_surf: int,
     contact_depth: wp.array2d(dtype=float),  # [N, S]
+    contact_friction: wp.array2d(dtype=wp.vec3),  # [N, S]
     dt: float,
     bounce_threshold: float,  # m/s: slower approach speeds do not bounce
     damping_factor: float,  # velocity scale per substep, in (0, 1]
@@ -277,27 +315,15 @@ def sim_finalize(
         qd_out[i] = wp.vec3(0.0)
         return
     x_start = q_start[i]
-    x = _project_contacts(i, q[i], surf_normal, surf_start, surf_end, alpha1, n_surf, contact_depth)
+    # Last contact + friction pass: particles that belong to no tet, and the final state.
+    x = _contact(i, q[i], x_start, surf_normal, surf_start, surf_end, alpha0, alpha1, n_surf,
+                 surf_friction, contact_depth, contact_friction)
     m = mass[i]
     inv_dt = 1.0 / dt
-    # Friction: position-level Coulomb against the surface's own motion in this substep.
     for s in range(n_surf):
         depth = contact_depth[i, s]
         if depth > 0.0:
-            n = surf_normal[s]
-            disp_s = (surf_end[s] - surf_start[s]) * (alpha1 - alpha0)
-            rel = (x - x_start) - disp_s
-            rt = rel - wp.dot(rel, n) * n
-            lt = wp.length(rt)
-            corr = wp.vec3(0.0)
-            mu = surf_friction[s]
-            if lt > 0.0:
-                if lt <= mu * depth:
-                    corr = -rt  # static: no slip
-                else:
-                    corr = -rt * (mu * depth / lt)  # kinetic: slip reduced by mu * depth
-            x = x + corr
-            wp.atomic_add(surf_force, s, (n * depth + corr) * (m * force_scale))
+            wp.atomic_add(surf_force, s, (surf_normal[s] * depth + contact_friction[i, s]) * (m * force_scale))
     v = (x - x_start) * inv_dt
     # Restitution on the normal velocity relative to the surface (Müller et al. 2020).
     for s in range(n_surf):

@@ -149,7 +149,8 @@ def test_constraint_projection_matches_numpy_reference(rng):
             wp.array(np.array([[0, 1, 2, 3]], np.int32), dtype=wp.int32),
             wp.array(Dinv[None].astype(np.float32), dtype=wp.mat33), wp.array([V], dtype=float),
             wp.array([mu[t]], dtype=float), wp.array([lam[t]], dtype=float), wp.array([1.0], dtype=float),
-            lams, 0, 1 / h / h, z, z, z, 1.0, 0, wp.zeros((4, 1), dtype=float)])
+            lams, 0, 1 / h / h, q, z, z, z, 0.0, 1.0, 0, wp.zeros(1, dtype=float),
+            wp.zeros((4, 1), dtype=float), wp.zeros((4, 1), dtype=wp.vec3)])
         step = np.abs(x_ref - x[t]).max()
         assert np.abs(q.numpy() - x_ref).max() <= 2e-3 * step + 1e-7
         np.testing.assert_allclose(lams.numpy()[0], lam_prev[t] + dl, rtol=2e-3, atol=1e-12)
@@ -250,7 +251,8 @@ def test_finalize_applies_coulomb_friction_and_restitution():
         qa, wp.array(q_start, dtype=wp.vec3), wp.array(qd_start, dtype=wp.vec3),
         wp.array(np.ones(3, np.float32), dtype=float), wp.array(np.ones(3, np.float32), dtype=float),
         wp.array(np.array([[0, 0, 1]], np.float32), dtype=wp.vec3), ground, ground, 0.0, 1.0,
-        wp.array([mu], dtype=float), wp.array([e], dtype=float), 1, depth_a, h, 0.2, 1.0, 1.0 / (h * h),
+        wp.array([mu], dtype=float), wp.array([e], dtype=float), 1, depth_a, wp.zeros((3, 1), dtype=wp.vec3),
+        h, 0.2, 1.0, 1.0 / (h * h),
     ], outputs=[qd_out, force])
     x = qa.numpy()
     v = qd_out.numpy()

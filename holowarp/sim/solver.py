@@ -135,6 +135,7 @@ class SolverXPBDNeoHookean:
         self._q_start = wp.zeros(N, dtype=wp.vec3, device=dev)
         self._qd_start = wp.zeros(N, dtype=wp.vec3, device=dev)
         self._depth = wp.zeros((N, S), dtype=float, device=dev)
+        self._fric = wp.zeros((N, S), dtype=wp.vec3, device=dev)
         self._lambdas = wp.zeros(M, dtype=wp.vec2, device=dev)
         self._stats = wp.zeros(2, dtype=float, device=dev)
         offs = model.tet_color_offsets
@@ -217,7 +218,7 @@ class SolverXPBDNeoHookean:
                 K.sim_predict,
                 dim=m.particle_count,
                 inputs=[src.particle_q, src.particle_qd, m.particle_inv_mass, g, h, S],
-                outputs=[state_out.particle_q, self._q_start, self._qd_start, self._depth],
+                outputs=[state_out.particle_q, self._q_start, self._qd_start, self._depth, self._fric],
                 device=dev,
             )
             for it in range(plan.iterations):
@@ -229,8 +230,9 @@ class SolverXPBDNeoHookean:
                         inputs=[
                             order, off, state_out.particle_q, m.particle_inv_mass,
                             m.tet_indices, m.tet_dm_inv, m.tet_volume, m.tet_mu, m.tet_lambda, stiff,
-                            self._lambdas, int(it == 0), 1.0 / (h * h), m.surface_normal,
-                            control.surface_start, control.surface_end, a1, S, self._depth,
+                            self._lambdas, int(it == 0), 1.0 / (h * h), self._q_start, m.surface_normal,
+                            control.surface_start, control.surface_end, a0, a1, S, m.surface_friction,
+                            self._depth, self._fric,
                         ],
                         device=dev,
                     )
@@ -240,7 +242,7 @@ class SolverXPBDNeoHookean:
                 inputs=[
                     state_out.particle_q, self._q_start, self._qd_start, m.particle_inv_mass,
                     m.particle_mass, m.surface_normal, control.surface_start, control.surface_end,
-                    a0, a1, m.surface_friction, m.surface_restitution, S, self._depth, h, thresh,
+                    a0, a1, m.surface_friction, m.surface_restitution, S, self._depth, self._fric, h, thresh,
                     damp, 1.0 / (h * h * n_sub),
                 ],
                 outputs=[state_out.particle_qd, state_out.surface_force],
