@@ -307,7 +307,8 @@ def render_frames(render_dir, placed_mesh: TetMesh, frames, model, surface_point
     surf = pv.PolyData(np.asarray(frames[0], np.float64), faces)
     pl = pv.Plotter(off_screen=True, window_size=list(window_size))
     pl.set_background("white")
-    pl.add_mesh(surf, color=(0.85, 0.55, 0.35), smooth_shading=False, show_edges=False)
+    body = pl.add_mesh(surf, color=(0.85, 0.55, 0.35), smooth_shading=False, show_edges=False)
+    surf = body.mapper.dataset  # add_mesh may copy the mesh: update the one drawn
     allx = np.asarray(frames, np.float64).reshape(-1, 3)
     finite = allx[np.all(np.isfinite(allx), axis=1)]
     lo, hi = finite.min(0), finite.max(0)
@@ -324,7 +325,7 @@ def render_frames(render_dir, placed_mesh: TetMesh, frames, model, surface_point
         plate_actors.append((p, pl.add_mesh(box, color=(0.5, 0.55, 0.65), opacity=0.6), ctr))
     centre = 0.5 * (lo + hi)
     pl.camera.focal_point = tuple(centre)
-    pl.camera.position = tuple(centre + np.array([1.6, -2.4, 1.2]) * max(ext, 1e-3))
+    pl.camera.position = tuple(centre + np.array([1.8, -2.6, 0.7]) * max(ext, 1e-3))
     pl.camera.up = (0.0, 0.0, 1.0)
     paths = []
     for k in tqdm(range(len(frames)), desc="render", unit="frame", disable=not progress):
@@ -332,8 +333,10 @@ def render_frames(render_dir, placed_mesh: TetMesh, frames, model, surface_point
         if not np.all(np.isfinite(x)):
             break
         surf.points = x
+        surf.Modified()
         for p, actor, c0 in plate_actors:
             actor.position = tuple(p.box_center(k / FPS) - c0)
+        pl.render()
         out = render_dir / f"frame_{k:04d}.png"
         with atomic_path(out) as tmp:
             pl.screenshot(str(tmp))
