@@ -3,12 +3,13 @@
 One substep of :class:`holowarp.sim.SolverXPBDNeoHookean` launches, in order:
 
 1. :func:`sim_predict` (per particle): symplectic Euler prediction ``v += g dt``,
-   ``x += v dt``; remembers the substep's start position/velocity; clears contact depths.
+   ``x += v dt``; remembers the substep's start position/velocity; clears contact state.
 2. ``iterations`` times :func:`sim_solve_tets` (per tet, over the tets of one colour, or over
    all colours at once on the CPU, see below): the coupled deviatoric + hydrostatic XPBD
-   projection of one tet, followed by the contact projection of its four vertices.
-3. :func:`sim_finalize` (per particle): final contact projection, position-level Coulomb
-   friction, velocity from positions, restitution, velocity damping.
+   projection of one tet, followed by the contact projection and Coulomb friction of its
+   four vertices.
+3. :func:`sim_finalize` (per particle): last contact/friction pass, velocity from positions,
+   restitution, velocity damping, contact forces.
 
 Material model (Macklin & Müller 2021, "A Constraint-based Formulation of Stable Neo-Hookean
 Materials"). With the deformation gradient ``F = Ds Dm^-1``:
@@ -35,8 +36,13 @@ Contacts are analytic half-spaces ("surfaces"): surface ``s`` keeps particles on
 ``dot(x - p_s, n_s) >= 0``. Surface 0 is usually the ground (z = 0, n = +Z); the others are
 kinematic plates whose point moves linearly from ``surf_start`` to ``surf_end`` over the
 step. ``contact_depth[i, s]`` accumulates the normal correction surface ``s`` applied to
-particle ``i`` in this substep; it drives friction (Coulomb: the tangential correction is
-bounded by ``mu * depth``) and the reported contact force ``m * depth / dt^2``.
+particle ``i`` in this substep (its normal impulse times dt / m); position-level Coulomb
+friction bounds the tangential correction ``contact_friction[i, s]`` by ``mu * depth``
+(Macklin et al. 2014, "Unified particle physics"). Friction is re-evaluated at every contact
+projection inside the iterations, so it converges together with the elastic solve; applying
+it once after the iterations instead locks in the unconverged, sweep-order-dependent
+tangential state of the contact layer and makes bodies rock on landing. The force reported
+per surface is ``m (depth n + friction) / dt^2``, averaged over the substeps.
 """
 
 from __future__ import annotations

@@ -10,8 +10,9 @@ Per substep (kernels in :mod:`holowarp.kernels.sim_xpbd`):
 1. predict positions with gravity (symplectic Euler);
 2. ``iterations`` x: project every tet's coupled deviatoric + hydrostatic stable
    Neo-Hookean constraints (Macklin & Müller 2021) colour by colour, then push its vertices
-   out of the ground and plate half-spaces;
-3. position-level Coulomb friction, velocity update, restitution and velocity damping.
+   out of the ground and plate half-spaces with position-level Coulomb friction; odd
+   iterations sweep the colours backwards (symmetric Gauss-Seidel);
+3. velocity update, restitution and velocity damping.
 
 Stability. The two constraints have no common zero (``|F| = 0`` and ``det F = gamma`` exclude
 each other); the rest state is a balance of two large opposing multipliers, and part of the
