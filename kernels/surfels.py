@@ -98,14 +98,16 @@ _ALPHA_MAX = wp.constant(ALPHA_MAX)
 _T_MIN = wp.constant(T_MIN)
 _MEDIAN_T = wp.constant(MEDIAN_T)
 _BIG = wp.constant(1.0e30)
-#: Pixel margin around each box: float32 rounding of the box must never cut a pixel where
-#: alpha >= ALPHA_MIN, or the kernels would disagree with the dense reference.
-_BOX_MARGIN = wp.constant(1)
+#: Margin (pixels, plus a relative part) around each box: float32 rounding of the box must
+#: never cut a pixel where alpha >= ALPHA_MIN, or the kernels would disagree with the dense
+#: reference. The box's own rounding error is ~1e-6 of its size.
+_BOX_MARGIN = wp.constant(1.0e-3)
+_BOX_MARGIN_REL = wp.constant(1.0e-4)
 
 #: Everything the compositing loop reads about one surfel, contiguous: (floor(m_x), floor(m_y),
 #: frac(m_x), frac(m_y), H2[0..2], E0[0..1], E1[0..1], P, Q, D, opacity, colour[0..2],
-#: normal[0..2], 3 unused). The centre is split so that (x + 0.5 - floor(m)) is exact and the
-#: pixel offset keeps float32's full relative precision.
+#: normal[0..2], rho cut-off 2 ln(255 o), 2 unused). The centre is split so that
+#: (x + 0.5 - floor(m)) is exact and the pixel offset keeps float32's full relative precision.
 splat_record = wp.types.vector(length=24, dtype=wp.float32)
 _vec5 = wp.types.vector(length=5, dtype=wp.float32)
 
@@ -229,12 +231,15 @@ def surfel_bounds(
     xmax = m[0] + wp.max(cx + hx, r2d)
     ymin = m[1] + wp.min(cy - hy, -r2d)
     ymax = m[1] + wp.max(cy + hy, r2d)
-    # Pixel column j has its centre at j + 0.5. Clamp before int conversion (huge boxes).
+    # Pixel column j has its centre at j + 0.5, so the columns inside [xmin, xmax] run from
+    # ceil(xmin - 0.5) to floor(xmax - 0.5). Clamp before int conversion (huge boxes).
+    tx = _BOX_MARGIN + _BOX_MARGIN_REL * (xmax - xmin)
+    ty = _BOX_MARGIN + _BOX_MARGIN_REL * (ymax - ymin)
     lim = float(4 * (width + height) + 64)
-    x0 = wp.max(int(wp.floor(wp.clamp(xmin - 0.5, -lim, lim))) - _BOX_MARGIN, 0)
-    x1 = wp.min(int(wp.ceil(wp.clamp(xmax - 0.5, -lim, lim))) + _BOX_MARGIN, width - 1)
-    y0 = wp.max(int(wp.floor(wp.clamp(ymin - 0.5, -lim, lim))) - _BOX_MARGIN, 0)
-    y1 = wp.min(int(wp.ceil(wp.clamp(ymax - 0.5, -lim, lim))) + _BOX_MARGIN, height - 1)
+    x0 = wp.max(int(wp.ceil(wp.clamp(xmin - 0.5 - tx, -lim, lim))), 0)
+    x1 = wp.min(int(wp.floor(wp.clamp(xmax - 0.5 + tx, -lim, lim))), width - 1)
+    y0 = wp.max(int(wp.ceil(wp.clamp(ymin - 0.5 - ty, -lim, lim))), 0)
+    y1 = wp.min(int(wp.floor(wp.clamp(ymax - 0.5 + ty, -lim, lim))), height - 1)
     if x1 < x0 or y1 < y0:
         return
     boxes[i] = wp.vec4i(x0, y0, x1, y1)
@@ -331,7 +336,7 @@ def pack_splats(
     n = normals[i]
     ranked_splats[j] = splat_record(
         mi[0], mi[1], f[0], f[1], H2[0], H2[1], H2[2], E0[0], E0[1], E1[0], E1[1], c2[0], c2[1], c2[2],
-        opacities[i], c[0], c[1], c[2], n[0], n[1], n[2], 0.0, 0.0, 0.0,
+        opacities[i], c[0], c[1], c[2], n[0], n[1], n[2], 2.0 * wp.log(opacities[i] * 255.0), 0.0, 0.0,
     )  # fmt: skip
 
 
@@ -370,8 +375,9 @@ def _splat_at(r: splat_record, dx: float, dy: float):
     rho2d = 2.0 * (dx * dx + dy * dy)
     out = _vec5(rho2d, r[6], 0.0, 0.0, 0.0)
     if c2 != 0.0:
-        u = c0 / c2
-        v = c1 / c2
+        inv = 1.0 / c2
+        u = c0 * inv
+        v = c1 * inv
         rho3d = u * u + v * v
         if rho3d <= rho2d:
             out = _vec5(rho3d, r[4] * u + r[5] * v + r[6], u, v, 1.0)
@@ -427,6 +433,8 @@ def rasterize_forward(
             continue
         r = ranked_splats[j]
         e = _splat_at(r, (px - r[0]) - r[2], (py - r[1]) - r[3])
+        if e[0] > r[21]:  # alpha < ALPHA_MIN for sure: skip the exp
+            continue
         alpha = wp.min(_ALPHA_MAX, r[14] * wp.exp(-0.5 * e[0]))
         if alpha < _ALPHA_MIN:
             continue
@@ -524,6 +532,8 @@ def rasterize_backward(
         dx = (px - r[0]) - r[2]
         dy = (py - r[1]) - r[3]
         e = _splat_at(r, dx, dy)
+        if e[0] > r[21]:
+            continue
         o = r[14]
         G = wp.exp(-0.5 * e[0])
         alpha = wp.min(_ALPHA_MAX, o * G)

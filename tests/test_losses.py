@@ -22,10 +22,11 @@ from holowarp.losses import (
 )
 
 
-def test_ssim_matches_pytorch_msssim_values_and_gradients(rng):
+@pytest.mark.parametrize("shape", [(40, 36, 3), (330, 24, 2)])  # banded-matmul and convolution paths
+def test_ssim_matches_pytorch_msssim_values_and_gradients(rng, shape):
     pytorch_msssim = pytest.importorskip("pytorch_msssim")
-    a = torch.tensor(rng.uniform(0, 1, (40, 36, 3)), requires_grad=True)
-    b = (a.detach() + torch.tensor(rng.normal(0, 0.1, (40, 36, 3)))).clamp(0, 1)
+    a = torch.tensor(rng.uniform(0, 1, shape), requires_grad=True)
+    b = (a.detach() + torch.tensor(rng.normal(0, 0.1, shape))).clamp(0, 1)
     ours = ssim(a, b)
     ours.backward()
     g_ours = a.grad.clone()

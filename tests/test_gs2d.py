@@ -1,0 +1,228 @@
+"""Stage 0 (holowarp.gs2d) and the Gaussian model (holowarp.gaussians).
+
+The training tests use a tiny in-memory dataset whose images are rendered by the surfel
+rasteriser itself from a known set of surfels on a sphere, so the trainer must be able to
+fit them; they run a few dozen iterations at 32x32.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from holowarp.camera import fibonacci_sphere, intrinsics_from_fov, look_at
+from holowarp.data.dataset import Dataset
+from holowarp.gaussians import FLAT_LOG_SCALE, GaussianModel, PlyError, load_gaussians_ply, write_gaussians_ply
+from holowarp.gs2d import GS2DConfig, init_points_from_masks, main, train_gs2d
+from holowarp.ops import rasterize_surfels
+
+LRS = {"means": 1e-3, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 0.05, "sh_dc": 2.5e-3}
+
+
+def random_model(rng, n, device="cpu"):
+    q = rng.normal(size=(n, 4))
+    return GaussianModel(
+        rng.normal(size=(n, 3)), np.log(rng.uniform(0.01, 0.1, (n, 2))), q / np.linalg.norm(q, axis=1, keepdims=True),
+        rng.normal(size=n), rng.normal(size=(n, 3)), device=device,
+    )  # fmt: skip
+
+
+def test_ply_round_trip_in_the_3dgs_viewer_layout(rng, tmp_path):
+    g = random_model(rng, 50)
+    path = g.save_ply(tmp_path / "g.ply")
+    header = path.read_bytes().split(b"end_header\n")[0].decode()
+    names = [ln.split()[-1] for ln in header.splitlines() if ln.startswith("property")]
+    assert names == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+                     "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]  # fmt: skip
+    assert "binary_little_endian" in header and "element vertex 50" in header
+    back = load_gaussians_ply(path)
+    assert np.allclose(back["means"], g.means.detach().numpy(), atol=1e-6)
+    assert np.allclose(back["scales"], g.scales().detach().numpy(), rtol=1e-5)
+    assert np.allclose(back["opacities"], g.opacities().detach().numpy(), atol=1e-6)
+    assert np.allclose(back["sh_dc"], g.params["sh_dc"].detach().numpy(), atol=1e-6)
+    q = g.quats.detach().numpy()
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    assert np.allclose(back["quats"], q, atol=1e-6)
+    raw = np.frombuffer(path.read_bytes().split(b"end_header\n")[1], dtype="<f4").reshape(50, 17)
+    assert np.allclose(raw[:, 12], FLAT_LOG_SCALE)  # flat third axis for 3D viewers
+    assert np.allclose(raw[:, 3:6], back["normals"], atol=1e-6)  # nx ny nz = surfel normals
+    g2 = GaussianModel.from_ply(path)
+    assert torch.allclose(g2.colors(), g.colors().detach(), atol=1e-5)
+
+
+def test_load_gaussians_ply_names_the_file_on_bad_input(tmp_path):
+    with pytest.raises(PlyError, match="missing.ply"):
+        load_gaussians_ply(tmp_path / "missing.ply")
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n")
+    with pytest.raises(PlyError, match="bad.ply.*ascii"):
+        load_gaussians_ply(bad)
+    with pytest.raises(ValueError, match="quats"):
+        write_gaussians_ply(tmp_path / "x.ply", means=np.zeros((2, 3)), quats=np.zeros((3, 4)),
+                            scales=np.ones((2, 2)), opacities=np.ones(2) * 0.5, colors=np.zeros((2, 3)))  # fmt: skip
+
+
+def test_density_control_keeps_adam_moments_aligned_with_their_surfels(rng):
+    g = random_model(rng, 20)
+    g.setup_optimizer(LRS)
+    g.params["means"].grad = torch.tensor(rng.normal(size=(20, 3)), dtype=torch.float32)
+    for n in ("log_scales", "quats", "opacity_logits", "sh_dc"):
+        g.params[n].grad = torch.zeros_like(g.params[n])
+    g.step()
+    m_before = g.optimizer.state[g.params["means"]]["exp_avg"].clone()
+    means_before = g.means.detach().clone()
+    clone = torch.zeros(20, dtype=torch.bool)
+    clone[[1, 4]] = True
+    g.clone(clone)
+    assert g.num == 22
+    st = g.optimizer.state[g.params["means"]]
+    assert torch.equal(st["exp_avg"][:20], m_before) and float(st["exp_avg"][20:].abs().max()) == 0
+    assert torch.equal(g.means.detach()[20:], means_before[[1, 4]])
+    remove = torch.zeros(22, dtype=torch.bool)
+    remove[[0, 21]] = True
+    g.prune(remove)
+    assert g.num == 20
+    assert torch.equal(g.optimizer.state[g.params["means"]]["exp_avg"][0], m_before[1])
+    assert g.optimizer.param_groups[0]["params"][0] is g.params["means"]
+
+
+def test_split_replaces_a_surfel_by_two_smaller_ones_in_its_plane(rng):
+    g = random_model(rng, 5)
+    g.setup_optimizer(LRS)
+    sel = torch.tensor([False, False, True, False, False])
+    parent_mean = g.means.detach()[2].clone()
+    parent_scale = g.scales().detach()[2].clone()
+    normal = g.normals()[2].clone()
+    g.split(sel, generator=torch.Generator().manual_seed(0))
+    assert g.num == 6
+    kids = g.means.detach()[4:]
+    assert torch.allclose((kids - parent_mean) @ normal, torch.zeros(2), atol=1e-5)  # in the plane
+    assert torch.allclose(g.scales().detach()[4:], (parent_scale / 1.6).expand(2, 2), rtol=1e-5)
+
+
+def test_reset_opacity_caps_opacities_and_clears_their_moments(rng):
+    g = random_model(rng, 10)
+    g.setup_optimizer(LRS)
+    for n in g.params:
+        g.params[n].grad = torch.ones_like(g.params[n])
+    g.step()
+    before = g.opacities().detach().clone()
+    g.reset_opacity(0.01)
+    assert torch.allclose(g.opacities().detach(), torch.clamp_max(before, 0.01), atol=1e-7)
+    assert float(g.optimizer.state[g.params["opacity_logits"]]["exp_avg"].abs().max()) == 0.0
+
+
+def tiny_dataset(n_views=8, size=32, n_surfels=120, seed=0):
+    """Views of a ground-truth set of surfels on a sphere, rendered by the rasteriser."""
+    rng = np.random.default_rng(seed)
+    d = fibonacci_sphere(n_surfels)
+    means = 0.4 * d
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, d)
+    s = np.linalg.norm(axis, axis=1)
+    ang = np.arctan2(s, d[:, 2])
+    axis = axis / np.maximum(s, 1e-12)[:, None]
+    quats = np.concatenate([np.cos(ang / 2)[:, None], axis * np.sin(ang / 2)[:, None]], 1)
+    colors = 0.5 + 0.4 * d  # smooth colour field
+    K = intrinsics_from_fov(math.radians(40.0), size, size)
+    eyes = 2.2 * fibonacci_sphere(n_views)
+    images, masks, Vs = [], [], []
+    for e in eyes:
+        V = look_at(e)
+        out = rasterize_surfels(
+            torch.tensor(means), torch.tensor(quats), torch.full((n_surfels, 2), 0.09), torch.full((n_surfels,), 0.97),
+            torch.tensor(colors), torch.tensor(V), torch.tensor(K), size, size,
+        )  # fmt: skip
+        a = out["alpha"].numpy()
+        images.append(np.where(a[..., None] > 1e-6, out["rgb"].numpy() / np.maximum(a, 1e-6)[..., None], 0.0))
+        masks.append(a)
+        Vs.append(V)
+    return Dataset(
+        images=np.clip(np.stack(images), 0, 1).astype(np.float32), masks=np.stack(masks).astype(np.float32),
+        K=np.repeat(K[None], n_views, 0), viewmats=np.stack(Vs), train_idx=np.arange(1, n_views),
+        test_idx=np.array([0]), name="tiny",
+    )  # fmt: skip
+
+
+def tiny_config(iters, **kw):
+    base = dict(init_points=300, init_candidates=20_000, densify_from=10, densify_until=iters, densify_interval=10,
+                opacity_reset_interval=10_000, normal_from=iters // 2, checkpoint_every=10)
+    base.update(kw)  # fmt: skip
+    return GS2DConfig(iters=iters, **base)
+
+
+def test_init_points_lie_inside_every_training_mask():
+    ds = tiny_dataset()
+    pts, cols, r = init_points_from_masks(ds, 200, candidates=20_000)
+    assert len(pts) == 200 and cols.shape == (200, 3)
+    assert float(np.abs(pts).max()) <= r + 1e-9
+    for i in ds.train_idx:
+        V, K = ds.viewmats[i], ds.K[i]
+        pc = pts @ V[:3, :3].T + V[:3, 3]
+        uv = np.floor((pc[:, :2] / pc[:, 2:]) @ K[:2, :2].T + K[:2, 2]).astype(int)
+        seen = (uv >= 0).all(1) & (uv[:, 0] < ds.width) & (uv[:, 1] < ds.height)  # outside: not carved
+        assert (ds.masks[i][uv[seen, 1], uv[seen, 0]] >= 0.5).all()
+
+
+def test_training_lowers_the_loss_and_writes_ply_and_report(tmp_path):
+    ds = tiny_dataset()
+    res = train_gs2d(ds, tiny_config(60), tmp_path, progress=False)
+    report = json.loads((tmp_path / "report.json").read_text())
+    for key in ("psnr_test", "ssim_test", "gaussians", "iters", "seconds"):
+        assert key in report
+    assert report["iters"] == 60 and report["gaussians"] == res["model"].num
+    g = load_gaussians_ply(tmp_path / "gaussians.ply")
+    assert len(g["means"]) == report["gaussians"]
+    # Before training (the visual-hull initialisation) versus after.
+    init = train_gs2d(ds, tiny_config(0), tmp_path / "init", progress=False)
+    assert report["psnr_test"] > init["psnr_test"] + 3.0, (report["psnr_test"], init["psnr_test"])
+    assert (tmp_path / "test_preview.png").is_file()
+
+
+def test_resumed_training_reproduces_the_uninterrupted_run(tmp_path, monkeypatch):
+    ds = tiny_dataset()
+    cfg = tiny_config(30)
+    full = train_gs2d(ds, cfg, tmp_path / "full", progress=False)
+
+    import holowarp.gs2d as gs2d_mod
+
+    calls = {"n": 0}
+    real_loss = gs2d_mod.l1_dssim_loss
+
+    def interrupted(*a, **kw):
+        calls["n"] += 1
+        if calls["n"] > 20:
+            raise KeyboardInterrupt
+        return real_loss(*a, **kw)
+
+    monkeypatch.setattr(gs2d_mod, "l1_dssim_loss", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train_gs2d(ds, cfg, tmp_path / "part", progress=False)
+    assert (tmp_path / "part" / "checkpoint.pt").is_file()
+    assert not (tmp_path / "part" / "report.json").exists()
+    monkeypatch.setattr(gs2d_mod, "l1_dssim_loss", real_loss)
+    resumed = train_gs2d(ds, cfg, tmp_path / "part", resume=True, progress=False)
+    assert resumed["gaussians"] == full["gaussians"]
+    for name in ("means", "log_scales", "opacity_logits", "sh_dc"):
+        assert torch.allclose(resumed["model"].params[name], full["model"].params[name], atol=1e-5), name
+
+
+def test_cli_trains_and_reports_bad_datasets_clearly(tmp_path, capsys):
+    assert main([str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
+    assert "nope" in capsys.readouterr().err
+    assert main([str(tmp_path), "--out", str(tmp_path / "o"), "--iters", "-3"]) == 2
+    assert "--iters" in capsys.readouterr().err
+
+
+def test_config_presets_keep_the_order_of_events():
+    for n in (100, 800, 3000, 10_000):
+        c = GS2DConfig.for_iterations(n)
+        assert c.iters == n
+        assert c.densify_from < c.densify_until <= n
+        assert c.opacity_reset_interval % c.densify_interval == 0
+    p = GS2DConfig.paper()
+    assert p.iters == 10_000 and p.resolution == 512
