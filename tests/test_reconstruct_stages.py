@@ -83,7 +83,7 @@ def test_mesh_lambda_decays_quadratically_to_zero():
 def test_revert_keeps_every_tet_above_its_floor_and_leaves_others_alone(rng):
     mesh = box_tetmesh((4, 4, 4))
     tets = torch.tensor(np.array(mesh.tets), dtype=torch.int64)
-    x_old = torch.as_tensor(mesh.vertices, dtype=torch.float64)
+    x_old = torch.tensor(np.array(mesh.vertices), dtype=torch.float64)
     vol0 = signed_volumes_t(x_old, tets)
     floor = 0.05 * vol0
     x_new = x_old + torch.as_tensor(rng.normal(scale=0.12, size=mesh.vertices.shape))
@@ -174,3 +174,22 @@ def _mask_error(model, ds) -> float:
             out = rasterize_mesh(model.vertices.detach(), faces, ds.viewmats[v], ds.K[v], ds.width, ds.height)
             err += float((out["alpha"] - torch.as_tensor(ds.masks[v])).abs().mean())
     return err / len(ds.train_idx)
+
+
+def test_prune_never_opens_sealed_cavities_nor_leaves_a_non_manifold_boundary(rng):
+    mesh = box_tetmesh((6, 6, 6))
+    model = TetGaussians(mesh, continuous_opacity=False)
+    centres = mesh.vertices[mesh.tets].mean(axis=1)
+    # Random low-alpha tets everywhere (pinches galore) plus one sealed central pocket.
+    low = rng.random(mesh.num_tets) < 0.2
+    pocket = np.linalg.norm(centres - 0.5, axis=1) < 0.12
+    low |= pocket
+    with torch.no_grad():
+        model.opacity_logit.data = torch.logit(torch.as_tensor(np.where(low, 0.02, 0.9), dtype=torch.float32))
+    info = prune(model, TopologyConfig())
+    out = model.mesh()
+    assert out.manifold()["manifold"] and out.num_components() == 1
+    assert info["pruned"] > 0 and info["kept_cavity"] >= int(pocket.sum())
+    assert out.boundary_shells() == 1  # no internal void surface
+    assert info["low_alpha"] == int(low.sum())
+    assert info["pruned"] + info["kept_cavity"] + info["restored_for_manifold"] == info["low_alpha"]

@@ -11,7 +11,8 @@ In order:
 4. **manifold repair**: where the boundary is not a manifold (an edge in more than two
    boundary faces, or a vertex whose boundary star is several fans), the tets around that
    edge/vertex are grouped into fans connected through faces containing it, and all but the
-   largest fan are removed; repeated until the boundary is manifold;
+   largest fan are removed; a vertex whose tets form one fan while empty space reaches it
+   from separate sides loses its whole star; repeated until the boundary is manifold;
 5. unused vertices are removed.
 
 Every count is reported, so a user sees exactly what cleanup changed.
@@ -111,10 +112,11 @@ def repair_manifold(mesh: TetMesh, *, max_rounds: int = 50) -> tuple[np.ndarray,
                 for i, f in enumerate(fans):
                     if i != best:
                         drop[f] = True
-        if not drop.any():
-            # A defect no fan split explains: remove the smallest tet touching it.
-            touch = np.unique(np.concatenate(stars))
-            drop[touch[np.argmin(v[touch])]] = True
+            elif len(pivot) == 1:
+                # One fan of tets but several boundary fans: empty space touches the vertex
+                # from separate sides (a cavity or tunnel pinching the surface). Removing
+                # the vertex's star merges those gaps into one.
+                drop[star] = True
         keep[ids[drop]] = False
         sub = TetMesh(mesh.vertices, mesh.tets[keep], validate=False)
         labels, n = sub.components()

@@ -154,9 +154,9 @@ def run_geometry_block(
     mesh = model.mesh()
     if rest_vertices is not None:
         mesh = mesh.with_vertices(np.asarray(rest_vertices, dtype=np.float64))
-    rest = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=dev)
+    rest = torch.tensor(np.array(mesh.vertices), dtype=torch.float32, device=dev)
     bf_np = mesh.boundary_faces()
-    faces = torch.as_tensor(bf_np, dtype=torch.int32, device=dev)
+    faces = torch.tensor(np.array(bf_np), dtype=torch.int32, device=dev)
     energies = TetEnergies(mesh, weights=None if config.uniform_biharmonic else "surface", device=dev)
     edges = mesh.edges()
     mean_edge = float(np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1).mean())
