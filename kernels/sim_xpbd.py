@@ -49,6 +49,9 @@ from __future__ import annotations
 
 import warp as wp
 
+# Forward-only kernels: no adjoints to generate (faster first compile).
+wp.set_module_options({"enable_backward": False})
+
 __all__ = [
     "sim_predict",
     "sim_solve_tets",

@@ -34,6 +34,7 @@ __all__ = [
     "Body",
     "Model",
     "ModelBuilder",
+    "color_tets",
 ]
 
 #: Standard gravity, m/s², along -Z (method.md §10: Z up, gravity 9.81).
@@ -131,18 +132,20 @@ class Model:
         particle_qd: initial velocities [N] vec3, m/s.
         particle_mass: lumped masses [N], kg (density x tet volume / 4 per corner).
         particle_inv_mass: [N], 1/kg; 0 for fixed particles.
-        tet_indices: [M, 4] int32, positively oriented.
+        tet_indices: [M, 4] int32, positively oriented, stored colour by colour
+            (``tet_permutation`` (M,) maps them back to the input order).
         tet_dm_inv: [M] mat33, inverse rest edge matrix ``[b-a, c-a, d-a]^-1``.
         tet_volume: [M] rest volumes, m³.
         tet_mu, tet_lambda: [M] Lamé parameters, Pa.
-        tet_color_order: [M] int32, tets sorted colour by colour (no two tets of one colour
-            share a vertex); ``tet_color_offsets`` (C + 1,) NumPy bounds of each colour.
+        tet_color_order: [M] int32, the sweep order (the identity, since the tets are
+            stored colour by colour; no two tets of one colour share a vertex);
+            ``tet_color_offsets`` (C + 1,) NumPy bounds of each colour.
         surface_normal, surface_friction, surface_restitution: [S] per contact surface
             (the ground first when present, then the plates in the order added).
         gravity: (3,) NumPy, m/s².
 
     Host-side copies: ``rest_positions`` (N, 3) float64 (the positions the builder placed),
-    ``tets`` (M, 4) int32, ``masses`` (N,), ``bodies`` (list of :class:`Body`), ``plates``
+    ``tets`` (M, 4) int32 (stored order), ``masses`` (N,), ``bodies`` (list of :class:`Body`), ``plates``
     (list of :class:`Plate`), ``ground`` (dict or None).
     """
 
@@ -382,6 +385,12 @@ class ModelBuilder:
         inv_mass = np.where(fix, 0.0, 1.0 / mass)
 
         order, offsets = color_tets(T, len(X))
+        # Store the tets colour by colour: a sweep then reads every per-tet array in memory
+        # order (the CPU backend runs a launch serially, so this is its cache behaviour).
+        # ``tet_permutation[k]`` is the input tet (concatenated over bodies) stored at k.
+        T, Dm_inv, vol = T[order], Dm_inv[order], vol[order]
+        mu_t = np.concatenate(self._mu)[order]
+        lam_t = np.concatenate(self._lambda)[order]
 
         m = Model()
         m.device = device
@@ -396,9 +405,10 @@ class ModelBuilder:
         m.masses = mass
         m.fixed = fix
         m.tet_volume_host = vol
-        m.tet_mu_host = np.concatenate(self._mu)
-        m.tet_lambda_host = np.concatenate(self._lambda)
+        m.tet_mu_host = mu_t
+        m.tet_lambda_host = lam_t
         m.tet_color_offsets = offsets
+        m.tet_permutation = order.astype(np.int64)
 
         f32 = np.float32
         m.particle_q = wp.array(X.astype(f32), dtype=wp.vec3, device=device)
@@ -408,9 +418,9 @@ class ModelBuilder:
         m.tet_indices = wp.array(T, dtype=wp.int32, device=device)
         m.tet_dm_inv = wp.array(Dm_inv.astype(f32), dtype=wp.mat33, device=device)
         m.tet_volume = wp.array(vol.astype(f32), dtype=float, device=device)
-        m.tet_mu = wp.array(np.concatenate(self._mu).astype(f32), dtype=float, device=device)
-        m.tet_lambda = wp.array(np.concatenate(self._lambda).astype(f32), dtype=float, device=device)
-        m.tet_color_order = wp.array(order.astype(np.int32), dtype=wp.int32, device=device)
+        m.tet_mu = wp.array(mu_t.astype(f32), dtype=float, device=device)
+        m.tet_lambda = wp.array(lam_t.astype(f32), dtype=float, device=device)
+        m.tet_color_order = wp.array(np.arange(len(T), dtype=np.int32), dtype=wp.int32, device=device)
 
         normals, friction, restitution = [], [], []
         if m.ground is not None:

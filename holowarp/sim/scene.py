@@ -40,6 +40,7 @@ __all__ = [
     "Placement",
     "PlateSpec",
     "Scene",
+    "parse_scene",
     "load_scene",
     "placement_transform",
     "build_model",

@@ -24,8 +24,9 @@ the scheme diverges for r of about 0.8 and above on regular and Kuhn-split meshe
 iteration count). :meth:`SolverXPBDNeoHookean.plan` raises the number of substeps until
 every tet (or the ``stability_percentile``-th percentile) is below the limit, up to
 ``max_substeps``; it keeps the iteration budget per step (``iterations x requested
-substeps``, at least one iteration per substep: more, smaller steps are more accurate than
-more iterations, Macklin et al. 2019 "Small steps in physics simulation"); tets still above
+substeps``, rounded to the nearest whole number of iterations per substep, at least one:
+more, smaller steps are more accurate than more iterations, Macklin et al. 2019 "Small
+steps in physics simulation"); tets still above
 the limit at the cap (slivers) are softened just enough to be stable. The plan reports all
 of it (:class:`StepPlan`).
 
@@ -168,7 +169,7 @@ class SolverXPBDNeoHookean:
             need = int(np.ceil(dt * np.sqrt(rp / STABILITY_RATIO) - 1e-9)) if rp > 0 else 1
             if need > S:
                 S_new = min(need, self.max_substeps)
-                I = max(1, int(np.ceil(self.iterations * self.substeps / S_new)))
+                I = max(1, int(np.floor(self.iterations * self.substeps / S_new + 0.5)))
                 S = S_new
         h = dt / S
         scale = np.ones(len(r1))
