@@ -356,6 +356,11 @@ class _Run:
             device=self.device,
             seed=self.cfg.seed,
         )
+        if not tcfg.continuous_opacity:
+            # Ablation: independent per-tet opacities, started from the same field so the
+            # comparison isolates the parameterisation (no shared vertices, no eik/smooth).
+            self.model.free_opacity = False
+            self.model.freeze_opacity_from_field()
         self.state["counts"]["tets_initial"] = mesh.num_tets
         self.state["counts"]["vertices_initial"] = mesh.num_vertices
         self._stage_add("tet_init", time.perf_counter() - t0, 0)

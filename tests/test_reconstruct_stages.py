@@ -167,7 +167,7 @@ def test_geometry_block_fits_silhouettes_without_inverting_tets(sphere_scene):
 def _mask_error(model, ds) -> float:
     from holowarp.ops import rasterize_mesh
 
-    faces = torch.as_tensor(model.mesh().boundary_faces(), dtype=torch.int32)
+    faces = torch.tensor(np.array(model.mesh().boundary_faces()), dtype=torch.int32)
     err = 0.0
     with torch.no_grad():
         for v in ds.train_idx:
