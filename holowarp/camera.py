@@ -21,6 +21,7 @@ __all__ = [
     "intrinsics_from_fov",
     "look_at",
     "camera_center",
+    "axes_focus",
     "opengl_c2w_to_viewmat",
     "viewmat_to_opengl_c2w",
     "project_points",
@@ -83,6 +84,25 @@ def camera_center(viewmat: np.ndarray) -> np.ndarray:
     """World position (3,) of a camera given its world-to-camera matrix (4, 4)."""
     R = viewmat[:3, :3]
     return -R.T @ viewmat[:3, 3]
+
+
+def axes_focus(viewmats) -> np.ndarray:
+    """The point (3,) nearest, in least squares, to every camera's optical axis: where a ring
+    of cameras looking at one object is looking. Parallel axes fall back to the mean camera
+    centre."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    centres = []
+    for V in np.asarray(viewmats, dtype=np.float64):
+        c = camera_center(V)
+        d = V[2, :3]  # optical axis (camera +z) in world
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+        centres.append(c)
+    if np.linalg.matrix_rank(A) < 3:
+        return np.mean(centres, axis=0)
+    return np.linalg.solve(A, b)
 
 
 _GL_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from holowarp.camera import axes_focus
 from holowarp.data.dataset import Dataset, DatasetError
 from holowarp.device import DeviceError, resolve_device
 from holowarp.fileio import atomic_path, atomic_write_json
@@ -172,14 +173,7 @@ def _view_volume(dataset: Dataset, idx) -> tuple[np.ndarray, float]:
     nearest to all optical axes, and the largest radius inside the narrowest field of view."""
     V = dataset.viewmats[idx]
     o = _camera_centres(V)
-    d = V[:, 2, :3]  # optical axes (camera +z) in world
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for oi, di in zip(o, d):
-        P = np.eye(3) - np.outer(di, di)
-        A += P
-        b += P @ oi
-    c = np.linalg.lstsq(A, b, rcond=None)[0]
+    c = axes_focus(V)
     K = dataset.K[idx]
     half = np.minimum.reduce([
         np.arctan(K[:, 0, 2] / K[:, 0, 0]), np.arctan((dataset.width - K[:, 0, 2]) / K[:, 0, 0]),

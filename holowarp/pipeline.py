@@ -92,22 +92,15 @@ def preflight(dataset, *, min_views: int = MIN_VIEWS) -> None:
 def _check_visual_hull(dataset, grid: int = 24) -> None:
     """Carve a coarse grid around the cameras' look-at region; fail if the carved set
     cannot span a 3D hull (e.g. too few or inconsistent views)."""
-    from holowarp.camera import camera_center
+    from holowarp.camera import axes_focus, camera_center
     from holowarp.stages.tet_init import HullError, scaled_hull
     from holowarp.stages.topology import sample_masks
 
     views = dataset.train_idx
     centres = np.stack([camera_center(dataset.viewmats[v]) for v in views])
-    # The region every camera looks at: around the least-squares intersection of the axes,
+    # The region every camera looks at: around the point nearest to all optical axes,
     # within the smallest camera distance.
-    axes = np.stack([dataset.viewmats[v][2, :3] for v in views])
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for c, d in zip(centres, axes):
-        P = np.eye(3) - np.outer(d, d)
-        A += P
-        b += P @ c
-    focus = np.linalg.lstsq(A, b, rcond=None)[0]
+    focus = axes_focus(dataset.viewmats[views])
     r = float(np.min(np.linalg.norm(centres - focus, axis=1)))
     g = np.linspace(-r, r, grid)
     pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3) + focus

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from holowarp.camera import axes_focus
 from holowarp.device import init_warp, resolve_device
 
 __all__ = [
@@ -78,24 +79,6 @@ class VisualHullSettings:
     edge_length_fac: float = 0.03
     epsilon: float = 1e-3
     outside_is_empty: bool = True
-
-
-def _axes_centre(viewmats: np.ndarray) -> np.ndarray:
-    """Least-squares point closest to all optical axes (cameras looking at one object)."""
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for V in viewmats:
-        R = V[:3, :3]
-        c = -R.T @ V[:3, 3]
-        d = R[2]  # optical axis in world
-        P = np.eye(3) - np.outer(d, d)
-        A += P
-        b += P @ c
-    try:
-        return np.linalg.solve(A, b)
-    except np.linalg.LinAlgError:
-        # Parallel axes: fall back to the mean camera centre pushed along the mean axis.
-        return np.mean([-V[:3, :3].T @ V[:3, 3] for V in viewmats], axis=0)
 
 
 def carve_field(dataset, views, origin, spacing: float, shape, *, outside_is_empty: bool = True, device: str = "cpu") -> np.ndarray:
@@ -175,7 +158,7 @@ def hull_surface(dataset, *, settings: VisualHullSettings | None = None, device:
     if st.grid < 8 or st.coarse_grid < 8:
         raise VisualHullError(f"grid must be >= 8 nodes, got grid={st.grid}, coarse_grid={st.coarse_grid}")
     vm = dataset.viewmats[views]
-    centre = _axes_centre(vm)
+    centre = axes_focus(vm)
     dists = np.linalg.norm(np.array([-V[:3, :3].T @ V[:3, 3] for V in vm]) - centre, axis=1)
     half = float(dists.min())
     if not np.isfinite(half) or half <= 0:

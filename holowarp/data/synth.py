@@ -75,13 +75,12 @@ def up_axis_rotation(up_axis: str) -> np.ndarray:
 def normalisation(points: np.ndarray):
     """``(scale, translation)`` mapping ``points`` (P, 3) to the evaluation frame of method.md
     §1: bounding box centred at the origin, largest side 1 (``p' = scale * p + translation``)."""
-    points = np.asarray(points, dtype=np.float64)
-    lo, hi = points.min(0), points.max(0)
-    ext = float((hi - lo).max())
-    if not np.isfinite(ext) or ext <= 0:
-        raise SynthError("mesh has a degenerate (zero-size) bounding box")
-    scale = 1.0 / ext
-    return scale, -0.5 * (lo + hi) * scale
+    from holowarp.metrics import EvaluationError, unit_cube_transform
+
+    try:
+        return unit_cube_transform(points)
+    except EvaluationError:
+        raise SynthError("mesh has a degenerate (zero-size) bounding box") from None
 
 
 def protocol_cameras(num_views: int, distance: float, res: int, *, fov_deg: float = FOV_DEG):

@@ -6,12 +6,14 @@ kernels views of torch storage instead of copies. Warp names devices as torch do
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 import warp as wp
 
 from holowarp.device import init_warp
 
-__all__ = ["wp_device", "to_wp", "zeros_wp"]
+__all__ = ["wp_device", "to_wp", "zeros_wp", "torch_stream"]
 
 init_warp()
 
@@ -39,3 +41,11 @@ def to_wp(t: torch.Tensor, dtype=None) -> wp.array:
 def zeros_wp(shape, dtype, device: str) -> wp.array:
     """Zero-initialised Warp array (convenience for outputs)."""
     return wp.zeros(shape, dtype=dtype, device=device)
+
+
+def torch_stream(t: torch.Tensor):
+    """Context that runs Warp launches on torch's current CUDA stream of ``t``'s device, so
+    they order with torch's work without an extra sync (a no-op on CPU)."""
+    if t.device.type == "cuda":
+        return wp.ScopedStream(wp.stream_from_torch(t.device))
+    return contextlib.nullcontext()

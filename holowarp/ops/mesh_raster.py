@@ -21,7 +21,6 @@ vertex closer than ``near`` to the camera plane are skipped.
 
 from __future__ import annotations
 
-import contextlib
 import math
 
 import numpy as np
@@ -29,7 +28,7 @@ import torch
 import warp as wp
 
 from holowarp.kernels import mesh_raster as K_
-from holowarp.ops._warp import to_wp, wp_device
+from holowarp.ops._warp import to_wp, wp_device, torch_stream
 
 __all__ = ["rasterize_mesh", "mesh_face_neighbors", "DEFAULT_TILE_SIZE", "DEFAULT_NEAR"]
 
@@ -39,12 +38,6 @@ DEFAULT_TILE_SIZE = 8
 #: Faces with a vertex closer than this to the camera plane (camera z, metres) are skipped.
 DEFAULT_NEAR = 1.0e-3
 
-
-def _stream(t: torch.Tensor):
-    """Run Warp launches on torch's current CUDA stream, so they order with torch's work."""
-    if t.device.type == "cuda":
-        return wp.ScopedStream(wp.stream_from_torch(t.device))
-    return contextlib.nullcontext()
 
 
 def mesh_face_neighbors(faces: torch.Tensor) -> torch.Tensor:
@@ -199,7 +192,7 @@ class _RasterizeMesh(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g_alpha, g_normal, _g_depth, _g_face_id):
-        with _stream(ctx.saved_tensors[0]):
+        with torch_stream(ctx.saved_tensors[0]):
             return _RasterizeMesh._backward(ctx, g_alpha, g_normal)
 
     @staticmethod
@@ -322,7 +315,7 @@ def rasterize_mesh(
             "depth": torch.zeros((height, width), dtype=torch.float32, device=dev),
             "face_id": torch.full((height, width), -1, dtype=torch.int32, device=dev),
         }
-    with _stream(x):
+    with torch_stream(x):
         alpha, normal, depth, face_id = _RasterizeMesh.apply(
             x.contiguous(), faces, neighbors, R, t, Kw, width, height, tile_size, float(near)
         )

@@ -9,22 +9,15 @@ float64 reference the tests compare against is :mod:`holowarp.ops.surfels_ref`.
 
 from __future__ import annotations
 
-import contextlib
 
 import torch
 import warp as wp
 
 from holowarp.kernels import surfels as K_
-from holowarp.ops._warp import to_wp, wp_device
+from holowarp.ops._warp import to_wp, wp_device, torch_stream
 
 __all__ = ["rasterize_surfels", "ProjectSurfels", "RasterizeSurfels", "check_surfel_inputs"]
 
-
-def _stream(t: torch.Tensor):
-    """Run Warp launches on torch's current CUDA stream so no extra sync is needed."""
-    if t.device.type == "cuda":
-        return wp.ScopedStream(wp.stream_from_torch(t.device))
-    return contextlib.nullcontext()
 
 
 def _empty(shape, dtype, like: torch.Tensor) -> torch.Tensor:
@@ -62,7 +55,7 @@ class ProjectSurfels(torch.autograd.Function):
         ins = [to_wp(means, wp.vec3), to_wp(quats, wp.vec4), to_wp(scales, wp.vec2), vm, km]
         outs_wp = [to_wp(t, _VEC[w]) for t, w in zip(outs, _PROJ_WIDTHS)]
         if n > 0:
-            with _stream(means):
+            with torch_stream(means):
                 wp.launch(K_.project_surfels, dim=n, inputs=ins, outputs=outs_wp, device=wp_device(means))
         ctx.save_for_backward(means, quats, scales)
         ctx.mark_non_differentiable(outs[5])
@@ -83,7 +76,7 @@ class ProjectSurfels(torch.autograd.Function):
             dev = wp_device(means)
             # The adjoint launch recomputes the forward into scratch outputs.
             scratch = [wp.empty(n, dtype=_VEC[w], device=dev) for w in _PROJ_WIDTHS]
-            with _stream(means):
+            with torch_stream(means):
                 wp.launch(
                     K_.project_surfels,
                     dim=n,
@@ -249,7 +242,7 @@ class RasterizeSurfels(torch.autograd.Function):
         d_opac = _zeros((n,), torch.float32, h2)
         d_colors = _zeros((n, 3), torch.float32, h2)
         if bins.total > 0:
-            with _stream(h2):
+            with torch_stream(h2):
                 wp.launch(
                     K_.rasterize_backward,
                     dim=bins.tiles_x * bins.tiles_y * K_.TILE_SIZE * K_.TILE_SIZE,
@@ -376,7 +369,7 @@ def rasterize_surfels(
     opacities = opacities.to(f32).contiguous()
     colors = colors.to(f32).contiguous()
     background = background.to(device=means.device, dtype=f32).contiguous()
-    with _stream(means):
+    with torch_stream(means):
         h2, e0, e1, pqd, centers, center_frac, normals = ProjectSurfels.apply(means, quats, scales, viewmat, K)
         rgb, alpha, normal, depth, median, dist, visible = RasterizeSurfels.apply(
             h2, e0, e1, pqd, centers, center_frac, normals, opacities, colors, background, width, height, float(near_plane)

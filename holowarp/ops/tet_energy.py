@@ -13,7 +13,6 @@ inverse rest edge matrices; ``adjacency`` (M, 4) int32 face neighbours (-1 on th
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +20,7 @@ import torch
 import warp as wp
 
 from holowarp.kernels import tet_energy as K_
-from holowarp.ops._warp import to_wp, wp_device
+from holowarp.ops._warp import to_wp, wp_device, torch_stream
 
 __all__ = [
     "HCTopology",
@@ -40,12 +39,6 @@ _TYPES = {
     torch.float64: (wp.float64, wp.vec3d, wp.mat33d),
 }
 
-
-def _stream(t: torch.Tensor):
-    """Run Warp launches on torch's current CUDA stream, so they order with torch's work."""
-    if t.device.type == "cuda":
-        return wp.ScopedStream(wp.stream_from_torch(t.device))
-    return contextlib.nullcontext()
 
 
 def _types(t: torch.Tensor):
@@ -82,7 +75,7 @@ class _DeformationGradient(torch.autograd.Function):
         T, V, M = _types(x)
         dev = wp_device(x)
         F = torch.empty((tets.shape[0], 3, 3), dtype=x.dtype, device=x.device)
-        with _stream(x):
+        with torch_stream(x):
             wp.launch(
                 K_.deformation_gradient_kernel,
                 dim=tets.shape[0],
@@ -99,7 +92,7 @@ class _DeformationGradient(torch.autograd.Function):
         tets, dm_inv = ctx.saved_tensors
         T, V, M = _types(dm_inv)
         grad_x = torch.zeros((ctx.num_vertices, 3), dtype=dm_inv.dtype, device=dm_inv.device)
-        with _stream(dm_inv):
+        with torch_stream(dm_inv):
             wp.launch(
                 K_.deformation_gradient_backward_kernel,
                 dim=tets.shape[0],
@@ -132,7 +125,7 @@ class _Biharmonic(torch.autograd.Function):
         LF = torch.empty_like(F)
         energy = torch.empty(m, dtype=x.dtype, device=x.device)
         tets_wp, adj_wp = _i(tets, wp.vec4i), _i(adjacency, wp.vec4i)
-        with _stream(x):
+        with torch_stream(x):
             wp.launch(
                 K_.deformation_gradient_kernel, dim=m,
                 inputs=[_vec(x, V), tets_wp, _mat(dm_inv, M)], outputs=[_mat(F, M)], device=dev,
@@ -151,7 +144,7 @@ class _Biharmonic(torch.autograd.Function):
         T, V, M = _types(LF)
         grad_x = torch.zeros((ctx.num_vertices, 3), dtype=LF.dtype, device=LF.device)
         g = grad_E.reshape(1).to(LF.dtype).contiguous()
-        with _stream(LF):
+        with torch_stream(LF):
             wp.launch(
                 K_.biharmonic_backward_kernel,
                 dim=tets.shape[0],
@@ -222,7 +215,7 @@ def inversion_penalty(x, tets, dm_inv, p: float = 2.0) -> torch.Tensor:
     energy = torch.empty(m, dtype=x.dtype, device=x.device)
     need = x.requires_grad and torch.is_grad_enabled()
     grad_x = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
-    with _stream(x):
+    with torch_stream(x):
         wp.launch(
             K_.inversion_penalty_kernel,
             dim=m,
@@ -317,7 +310,7 @@ def hc_targets(x, topo: HCTopology, *, x_orig=None, alpha: float = 0.0, beta: fl
     target = torch.empty_like(p)
     normal = torch.empty_like(p)
     sid, off, nid = _i(topo.surf_ids), _i(topo.nbr_offsets), _i(topo.nbr_ids)
-    with _stream(x):
+    with torch_stream(x):
         wp.launch(K_.hc_umbrella_kernel, dim=S, inputs=[_vec(x, V), _vec(xo, V), sid, off, nid, T(alpha)],
                   outputs=[_vec(p, V), _vec(b, V)], device=dev)
         wp.launch(K_.hc_face_normal_kernel, dim=topo.faces_global.shape[0],
@@ -350,7 +343,7 @@ def hc_energy(x, topo: HCTopology, target, normal, lam_cond: float) -> torch.Ten
     energy = torch.empty(S, dtype=x.dtype, device=x.device)
     need = x.requires_grad and torch.is_grad_enabled()
     grad_x = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
-    with _stream(x):
+    with torch_stream(x):
         wp.launch(
             K_.hc_energy_kernel,
             dim=S,
@@ -395,7 +388,7 @@ def eikonal_loss(phi: torch.Tensor, edges: torch.Tensor, x: torch.Tensor) -> tor
     need = need_phi or need_x
     gphi = torch.zeros_like(phi) if need else torch.zeros(1, dtype=x.dtype, device=x.device)
     gx = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
-    with _stream(x):
+    with torch_stream(x):
         wp.launch(
             K_.eikonal_kernel,
             dim=E,
@@ -422,7 +415,7 @@ def smoothness_loss(phi: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     energy = torch.empty(E, dtype=phi.dtype, device=phi.device)
     need = phi.requires_grad and torch.is_grad_enabled()
     g = torch.zeros_like(phi) if need else torch.zeros(1, dtype=phi.dtype, device=phi.device)
-    with _stream(phi):
+    with torch_stream(phi):
         wp.launch(
             K_.smoothness_kernel,
             dim=E,
