@@ -97,3 +97,19 @@ def test_scaled_hull_is_outward_and_scaled_about_its_centroid(rng):
 def test_degenerate_hulls_raise_clear_errors(points, match):
     with pytest.raises(HullError, match=match):
         scaled_hull(points)
+
+
+def test_cleanup_drops_flattened_boundary_caps_but_keeps_sound_tets():
+    mesh = box_tetmesh((2, 2, 2))
+    bf = mesh.boundary_faces()
+    top = bf[np.all(np.isclose(mesh.vertices[bf][:, :, 2], 1.0), axis=1)][0]
+    # A cap glued onto a top boundary face: its apex sits just above the face's plane.
+    apex = mesh.vertices[top].mean(axis=0) + [0.0, 0.0, 1e-3]
+    V = np.vstack([mesh.vertices, apex])
+    cap = np.array([[top[0], top[1], top[2], mesh.num_vertices]])  # apex on the outward side: positive
+    capped = TetMesh(V, np.vstack([mesh.tets, cap]))
+    assert capped.signed_volumes()[-1] > 0
+    clean, kept, info = cleanup(capped)
+    assert info["dropped_caps"] == 1 and info["dropped"] == 1
+    np.testing.assert_array_equal(np.sort(kept), np.arange(mesh.num_tets))
+    assert info["manifold"] and clean.num_tets == mesh.num_tets

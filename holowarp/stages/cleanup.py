@@ -6,7 +6,11 @@ In order:
    |volume| is above the degeneracy threshold) are reordered (swap of two vertices), which
    makes them positive without moving anything;
 2. **drop**: genuinely degenerate tets (|volume| below ``degenerate_rel`` times the median
-   tet volume) are removed;
+   tet volume) are removed, and so are boundary "caps": tets with a boundary face whose
+   minimum dihedral angle is below ``cap_dihedral_deg`` (four nearly coplanar surface
+   vertices, flattened while the surface was fitted). Caps hold almost no volume, so the
+   surface barely moves, while their near-singular deformation gradients would stiffen or
+   destabilise an FEM solve; removal repeats while newly exposed caps appear;
 3. **components**: only the largest face-connected component is kept;
 4. **manifold repair**: where the boundary is not a manifold (an edge in more than two
    boundary faces, or a vertex whose boundary star is several fans), the tets around that
@@ -35,10 +39,14 @@ class CleanupConfig:
 
     Attributes:
         degenerate_rel: a tet is degenerate when |volume| < degenerate_rel * median |volume|.
+        cap_dihedral_deg: boundary tets with a smaller minimum dihedral angle are dropped.
+        max_cap_rounds: passes of cap removal.
         max_repair_rounds: cap on manifold-repair rounds (each round fixes every defect found).
     """
 
     degenerate_rel: float = 1e-3
+    cap_dihedral_deg: float = 5.0
+    max_cap_rounds: int = 5
     max_repair_rounds: int = 50
 
 
@@ -137,7 +145,7 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
         the indices of its tets in the input (tet i of the output is input tet kept[i],
         possibly with two vertices swapped), and a report of every count:
         ``inverted_before_cleanup`` (signed volume <= 0 on entry), ``flipped``, ``dropped``
-        (degenerate), ``components_before``, ``components_removed``,
+        (degenerate), ``dropped_caps`` (boundary slivers), ``components_before``, ``components_removed``,
         ``tets_removed_by_component``, ``tets_removed_for_manifold``, ``manifold``,
         ``components``, ``inverted_after_cleanup``, ``tets_before``, ``tets_after``.
     """
@@ -152,8 +160,19 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
     t = mesh.tets.copy()
     t[flip, 2], t[flip, 3] = mesh.tets[flip, 3], mesh.tets[flip, 2]
     info["flipped"] = int(flip.sum())
-    info["dropped"] = int(degenerate.sum())
     kept = np.flatnonzero(~degenerate)
+    caps = 0
+    for _ in range(config.max_cap_rounds):
+        work = TetMesh(mesh.vertices, t[kept], validate=False)
+        on_boundary = np.zeros(work.num_tets, dtype=bool)
+        on_boundary[work.boundary_face_tets()] = True
+        cap = on_boundary & (work.quality()["min_dihedral_deg"] < config.cap_dihedral_deg)
+        if not cap.any() or cap.all():
+            break
+        caps += int(cap.sum())
+        kept = kept[~cap]
+    info["dropped"] = int(degenerate.sum()) + caps
+    info["dropped_caps"] = caps
     work = TetMesh(mesh.vertices, t[kept], validate=False)
     labels, n = work.components()
     info["components_before"] = n
