@@ -600,8 +600,9 @@ class _Run:
         }
         if metrics is not None:
             report["metrics"] = metrics
-        st["phase"] = "cleanup"  # a resumed finished run simply re-exports
-        self._checkpoint()
+        # No checkpoint here: the saved state stays the pre-cleanup one, so re-running a
+        # finished (or interrupted-while-exporting) run with --resume redoes cleanup and
+        # export from the same input and writes the same files.
         return report
 
     def _object_name(self) -> str:

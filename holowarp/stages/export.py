@@ -60,11 +60,16 @@ def render_test_views(model: TetGaussians, dataset, views, *, background) -> lis
     return out
 
 
-def _save_png(path: Path, img: np.ndarray):
+def _save_png(path: Path, img: np.ndarray, *, min_height: int = 384):
+    """Save an RGB float image; small renders are upscaled (nearest) so pixels stay visible."""
     from PIL import Image
 
+    im = Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8))
+    k = max(1, -(-min_height // im.height))
+    if k > 1:
+        im = im.resize((im.width * k, im.height * k), Image.NEAREST)
     with atomic_path(path) as tmp:
-        Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)).save(tmp, format="PNG")
+        im.save(tmp, format="PNG")
 
 
 def preview_test_views(out_dir: Path, renders, gts, views, *, max_views: int = 4) -> list[str]:
@@ -78,7 +83,7 @@ def preview_test_views(out_dir: Path, renders, gts, views, *, max_views: int = 4
     return paths
 
 
-def preview_cutaway(path: Path, mesh: TetMesh, *, axis: int = 0) -> str:
+def preview_cutaway(path: Path, mesh: TetMesh, *, axis: int = 1) -> str:
     """Off-screen pyvista render of the tets on one side of a mid plane, coloured by
     face-connected component (one colour per component), edges shown."""
     import pyvista as pv
@@ -108,9 +113,14 @@ def preview_cutaway(path: Path, mesh: TetMesh, *, axis: int = 0) -> str:
     plotter.add_text(f"{mesh.num_tets} tets, {n} component(s); cut at mid-plane", font_size=10)
     centre = mesh.vertices.mean(axis=0)
     extent = float(np.ptp(mesh.vertices, axis=0).max())
-    # Look at the cut face (the kept half lies on the low side of the plane).
-    eye = centre + extent * 2.2 * (np.eye(3)[axis] + np.array([0.3, -0.5, 0.4]))
-    plotter.camera_position = [tuple(eye), tuple(centre), (0, 0, 1)]
+    # Look at the cut face: the kept half lies on the low side of the plane, so the camera
+    # sits on the high side, a little above and to the side.
+    side = np.roll(np.eye(3)[axis], 1)
+    up = np.array([0.0, 0.0, 1.0]) if axis != 2 else np.array([0.0, 1.0, 0.0])
+    eye = centre + extent * 2.0 * (np.eye(3)[axis] + 0.35 * side + 0.35 * up)
+    plotter.camera_position = [tuple(eye), tuple(centre), tuple(up)]
+    plotter.reset_camera()
+    plotter.camera.zoom(1.3)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:

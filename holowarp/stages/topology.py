@@ -249,6 +249,8 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
 
     - pruning never opens a sealed cavity: low-alpha tets that do not connect, through other
       low-alpha tets, to the current boundary are invisible in every view and stay;
+    - pruning never digs one-tet dents: a low-alpha tet with three or four faces on kept
+      tets stays (repeated a few times);
     - pruning never makes the boundary non-manifold: the pruned tets around any
       non-manifold edge or vertex are restored, repeatedly, until the boundary is a
       manifold. Restoring every pruned tet gives back the (manifold) mesh before the
@@ -259,7 +261,8 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
 
     Returns:
         dict: ``tets_before``, ``pruned`` (removed for low alpha), ``low_alpha``,
-        ``kept_cavity`` (low-alpha tets kept because sealed), ``restored_for_manifold``,
+        ``kept_cavity`` (low-alpha tets kept because sealed), ``kept_dents`` (low-alpha tets
+        kept because three or more of their faces meet kept tets), ``restored_for_manifold``,
         ``removed_components``, ``tets_removed_by_component``, ``tets_after``, ``emptied``.
     """
     from scipy.sparse import coo_matrix
@@ -273,7 +276,7 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
     low = alpha < config.prune_alpha
     info = {"tets_before": M, "low_alpha": int(low.sum()), "emptied": False}
     if low.all():
-        info.update(emptied=True, pruned=0, kept_cavity=0, restored_for_manifold=0, removed_components=0,
+        info.update(emptied=True, pruned=0, kept_cavity=0, kept_dents=0, restored_for_manifold=0, removed_components=0,
                     tets_removed_by_component=0, tets_after=M)
         return info
     # Sealed cavities: components of the low-alpha set (through shared faces) that never
@@ -289,6 +292,19 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
     open_comp[lab[touches_outside]] = True
     drop = low & open_comp[lab]
     info["kept_cavity"] = int((low & ~drop).sum())
+    # Dents: a tet whose faces (>= 3 of 4) all meet kept tets would leave a one-tet pit in
+    # the surface. A single transparent surfel among opaque neighbours is a rendering
+    # artefact (it is redundant where its neighbours already cover its pixels), not
+    # evidence of empty space, so such tets stay; pruning keeps removing coherent regions.
+    filled = 0
+    for _ in range(3):
+        kept_nb = np.where(adj >= 0, ~drop[np.maximum(adj, 0)], False).sum(axis=1)
+        dent = drop & (kept_nb >= 3)
+        if not dent.any():
+            break
+        drop &= ~dent
+        filled += int(dent.sum())
+    info["kept_dents"] = filled
     keep = ~drop
     restored = 0
     for _ in range(1000):
