@@ -234,6 +234,12 @@ def reconstruct(
         raise ReconstructionError(f"cannot read the dataset: {e}") from None
     preflight(dataset)
 
+    _say(
+        f"reconstructing {dataset.name}: {len(dataset.train_idx)} training / {len(dataset.test_idx)} test views at "
+        f"{dataset.width}x{dataset.height}, preset {config.preset}, device {device}"
+        + (", resuming" if saved is not None else ""),
+        progress,
+    )
     run = _Run(dataset, data_dir, dataset_path, out_dir, config, device, progress, saved)
     try:
         report = run.execute()
@@ -328,6 +334,11 @@ class _Run:
         from holowarp.tetgs import TetGaussians
 
         t0 = time.perf_counter()
+        _say(
+            f"tetrahedralising the 1.1x convex hull of the stage-0 surfels with fTetWild "
+            f"(edge length {self.cfg.tet_init.edge_length_fac} x bbox diagonal)",
+            self.progress,
+        )
         g = load_gaussians_ply(self.out / "stage0" / "gaussians.ply")
         try:
             mesh = initial_tetmesh(g["means"], g["opacities"], self.cfg.tet_init)
@@ -354,6 +365,7 @@ class _Run:
             # comparison isolates the parameterisation (no shared vertices, no eik/smooth).
             self.model.free_opacity = False
             self.model.freeze_opacity_from_field()
+        _say(f"initial tet mesh: {mesh.num_tets} tets, {mesh.num_vertices} vertices", self.progress)
         self.state["counts"]["tets_initial"] = mesh.num_tets
         self.state["counts"]["vertices_initial"] = mesh.num_vertices
         self._stage_add("tet_init", time.perf_counter() - t0, 0)
@@ -589,6 +601,9 @@ class _Run:
             "min_dihedral_mean": q["min_dihedral_mean"],
             "aspect_ratio_mean": q["aspect_ratio_mean"],
             "prunes": st["counts"]["prunes"],
+            # Coherence of the pruning decisions (the paper's ablation measure): the most
+            # face-connected pieces any prune's plain rule would have left.
+            "raw_components_max": max((p.get("raw_components", 1) for p in st["counts"]["prunes"]), default=1),
             "geometry_blocks": st.get("geometry_blocks", []),
             "stage0": st.get("stage0"),
             "psnr_test": psnr,

@@ -299,13 +299,14 @@ def render_frames(render_dir, placed_mesh: TetMesh, frames, model, surface_point
     from tqdm.auto import tqdm
 
     from holowarp.fileio import atomic_path
+    from holowarp.viz import offscreen_plotter
 
     render_dir = Path(render_dir)
     render_dir.mkdir(parents=True, exist_ok=True)
     bf = placed_mesh.boundary_faces().astype(np.int64)
     faces = np.concatenate([np.full((len(bf), 1), 3, np.int64), bf], axis=1).reshape(-1)
     surf = pv.PolyData(np.asarray(frames[0], np.float64), faces)
-    pl = pv.Plotter(off_screen=True, window_size=list(window_size))
+    pl = offscreen_plotter(window_size)
     pl.set_background("white")
     body = pl.add_mesh(surf, color=(0.85, 0.55, 0.35), smooth_shading=False, show_edges=False)
     surf = body.mapper.dataset  # add_mesh may copy the mesh: update the one drawn

@@ -261,6 +261,8 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
 
     Returns:
         dict: ``tets_before``, ``pruned`` (removed for low alpha), ``low_alpha``,
+        ``raw_components`` and ``raw_non_manifold`` (face-connected pieces and non-manifold
+        boundary edges + vertices the plain rule would have left, before the guards below),
         ``kept_cavity`` (low-alpha tets kept because sealed), ``kept_dents`` (low-alpha tets
         kept because three or more of their faces meet kept tets), ``restored_for_manifold``,
         ``removed_components``, ``tets_removed_by_component``, ``tets_after``, ``emptied``.
@@ -277,6 +279,7 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
     info = {"tets_before": M, "low_alpha": int(low.sum()), "emptied": False}
     if low.all():
         info.update(emptied=True, pruned=0, kept_cavity=0, kept_dents=0, restored_for_manifold=0, removed_components=0,
+                    raw_components=0, raw_non_manifold=0,
                     tets_removed_by_component=0, tets_after=M)
         return info
     # Sealed cavities: components of the low-alpha set (through shared faces) that never
@@ -292,6 +295,11 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
     open_comp[lab[touches_outside]] = True
     drop = low & open_comp[lab]
     info["kept_cavity"] = int((low & ~drop).sum())
+    # What the plain rule (delete every open low-alpha tet) would leave: the measure of how
+    # coherent the opacities are (the paper's "Num. components" of its ablation).
+    raw = TetMesh(mesh.vertices, T[~drop], validate=False)
+    info["raw_components"] = int(raw.num_components())
+    info["raw_non_manifold"] = int(len(raw.non_manifold_edges()) + len(raw.non_manifold_vertices()))
     # Dents: a tet whose faces (>= 3 of 4) all meet kept tets would leave a one-tet pit in
     # the surface. A single transparent surfel among opaque neighbours is a rendering
     # artefact (it is redundant where its neighbours already cover its pixels), not
