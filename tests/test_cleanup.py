@@ -113,3 +113,48 @@ def test_cleanup_drops_flattened_boundary_caps_but_keeps_sound_tets():
     assert info["dropped_caps"] == 1 and info["dropped"] == 1
     np.testing.assert_array_equal(np.sort(kept), np.arange(mesh.num_tets))
     assert info["manifold"] and clean.num_tets == mesh.num_tets
+
+
+def _edge_fan(sectors_deg):
+    """Tets of prisms around the z-axis edge (0,0,0)-(0,0,1): one prism per (a, b) sector
+    in degrees (radius 1, height 1, 3 tets each), with shared rim vertices welded."""
+    angles = sorted({a for s in sectors_deg for a in s})
+    rim = {a: i for i, a in enumerate(angles)}
+    n = len(angles)
+    V = [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    for a in angles:
+        V.append([np.cos(np.radians(a)), np.sin(np.radians(a)), 0.0])
+    for a in angles:
+        V.append([np.cos(np.radians(a)), np.sin(np.radians(a)), 1.0])
+    T, owner = [], []
+    for k, (a, b) in enumerate(sectors_deg):
+        p, q = 2 + rim[a], 2 + rim[b]
+        P, Q = p + n, q + n
+        # Prism (0, p, q) x (1, P, Q) split into three tets.
+        for tet in ([0, p, q, 1], [p, q, 1, Q], [p, 1, P, Q]):
+            T.append(tet)
+            owner.append(k)
+    mesh, _ = TetMesh(np.array(V), np.array(T), validate=False).oriented()
+    return mesh, np.array(owner)
+
+
+def test_cleanup_puts_back_caps_whose_removal_would_pinch_the_boundary():
+    # Two thick fans around one edge, joined on one side by a 2-degree sliver sector and
+    # open on the other: manifold as given. Dropping the sliver tets (caps: min dihedral
+    # < 5 degrees, on the boundary) would leave two fans meeting at the edge only.
+    sectors = [(0, 40), (40, 80), (80, 120), (120, 160), (160, 162), (162, 200), (200, 240), (240, 280), (280, 320)]
+    mesh, owner = _edge_fan(sectors)
+    assert mesh.manifold()["manifold"] and mesh.num_components() == 1
+    q = mesh.quality()["min_dihedral_deg"]
+    assert np.all(q[owner == 4] < 5.0) and np.all(q[owner != 4] > 5.0)
+    without = TetMesh(mesh.vertices, mesh.tets[owner != 4], validate=False)
+    assert not without.manifold()["manifold"]  # what plain cap removal would leave
+
+    clean, kept, info = cleanup(mesh)
+    assert info["caps_restored_for_manifold"] > 0
+    assert info["tets_removed_for_manifold"] == 0 and info["components_removed"] == 0
+    assert info["manifold"] and clean.manifold()["manifold"] and clean.num_components() == 1
+    # Every sound tet survives; only caps that the boundary does not need are gone.
+    assert set(np.flatnonzero(owner != 4)) <= set(kept.tolist())
+    assert info["dropped_caps"] + info["caps_restored_for_manifold"] == int((owner == 4).sum())
+    assert clean.num_tets == mesh.num_tets - info["dropped_caps"]

