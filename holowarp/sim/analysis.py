@@ -54,6 +54,8 @@ def pieces_apart(mesh: TetMesh, end_positions, *, separation: float | None = Non
     Returns:
         (groups, info) with ``info = {"pieces": k, "joined_pairs": [...], "opened_pairs": [...]}``.
     """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     labels, k = mesh.components()
@@ -76,14 +78,7 @@ def pieces_apart(mesh: TetMesh, end_positions, *, separation: float | None = Non
     sv = np.flatnonzero(vpiece >= 0)
     tree = cKDTree(X[sv])
     pairs = tree.query_pairs(contact_tol, output_type="ndarray")  # [P, 2] into sv
-    parent = list(range(k))
-
-    def find(a):
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
+    joined = []
     if len(pairs):
         i, j = sv[pairs[:, 0]], sv[pairs[:, 1]]
         pa, pb = vpiece[i], vpiece[j]
@@ -97,10 +92,11 @@ def pieces_apart(mesh: TetMesh, end_positions, *, separation: float | None = Non
             rec = {"pieces": [a, b], "interface_pairs": int(sel.sum()), "median_end_distance": med}
             if med <= separation:
                 info["joined_pairs"].append(rec)
-                parent[find(a)] = find(b)
+                joined.append((a, b))
             else:
                 info["opened_pairs"].append(rec)
-    groups = len({find(a) for a in range(k)})
+    a, b = np.array(joined, dtype=np.int64).reshape(-1, 2).T
+    groups = int(connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(k, k)), directed=False)[0])
     info["separation"] = separation
     info["contact_tol"] = contact_tol
     return groups, info

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from holowarp.tetmesh import TetMesh
+from holowarp.tetmesh import TET_FACES, TetMesh
 
 __all__ = ["CleanupConfig", "cleanup", "repair_manifold", "restore_until_manifold"]
 
@@ -71,26 +71,22 @@ def _vertex_to_tets(tets: np.ndarray, n: int):
 def _fans(tets: np.ndarray, star: np.ndarray, pivot: tuple[int, ...]) -> list[np.ndarray]:
     """Group the tets of ``star`` (all containing the pivot vertices) into fans: two tets
     are in one fan when they share a face that contains every pivot vertex."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     m = len(star)
-    parent = list(range(m))
-
-    def find(a):
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
-
-    sets = [set(tets[t].tolist()) for t in star]
-    piv = set(pivot)
-    for i in range(m):
-        for j in range(i + 1, m):
-            shared = sets[i] & sets[j]
-            if len(shared) == 3 and piv <= shared:
-                parent[find(i)] = find(j)
-    groups: dict[int, list[int]] = {}
-    for i in range(m):
-        groups.setdefault(find(i), []).append(int(star[i]))
-    return [np.array(g) for g in groups.values()]
+    faces = np.sort(tets[star][:, TET_FACES], axis=2).reshape(-1, 3)  # (4m, 3)
+    owner = np.repeat(np.arange(m), 4)
+    on_pivot = np.all([np.any(faces == p, axis=1) for p in pivot], axis=0)
+    faces, owner = faces[on_pivot], owner[on_pivot]
+    _, key = np.unique(faces, axis=0, return_inverse=True)
+    key = key.reshape(-1)
+    # Tets listing the same face key share that face: chain them in key order.
+    order = np.argsort(key, kind="stable")
+    same = key[order[1:]] == key[order[:-1]]
+    a, b = owner[order[:-1]][same], owner[order[1:]][same]
+    _, lab = connected_components(coo_matrix((np.ones(len(a)), (a, b)), shape=(m, m)), directed=False)
+    return [star[lab == g] for g in np.unique(lab)]
 
 
 def restore_until_manifold(
