@@ -38,6 +38,7 @@ __all__ = [
     "write_gaussians_ply",
     "load_gaussians_ply",
     "quat_to_rotmat",
+    "quats_facing",
     "rgb_to_sh_dc",
     "sh_dc_to_rgb",
 ]
@@ -76,6 +77,18 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
 
     return quat_wxyz_to_matrix(torch.nn.functional.normalize(quats, dim=-1))
 
+
+
+def quats_facing(normals) -> np.ndarray:
+    """wxyz quaternions [N, 4] of the shortest rotations taking +z onto ``normals`` [N, 3]
+    (unit vectors), i.e. surfels whose normal (third axis) is ``normals``. The rotation is
+    undefined for a normal of exactly -z (the result is then not a unit quaternion)."""
+    d = np.asarray(normals, dtype=np.float64)
+    axis = np.cross(np.array([0.0, 0.0, 1.0]), d)
+    s = np.linalg.norm(axis, axis=1)
+    ang = np.arctan2(s, d[:, 2])
+    axis = axis / np.maximum(s, 1e-12)[:, None]
+    return np.concatenate([np.cos(ang / 2)[:, None], axis * np.sin(ang / 2)[:, None]], 1)
 
 def _logit(p):
     p = np.clip(np.asarray(p, dtype=np.float64), 1e-7, 1 - 1e-7)

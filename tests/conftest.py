@@ -17,6 +17,19 @@ SHARED_MESHES = REPO.parent / "shared" / "data" / "meshes"
 ASSETS = REPO / "holowarp" / "assets"
 
 
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Run a module's tests with one torch thread. Small tensors gain nothing from
+    intra-op threads, and on a loaded 2-core machine torch's thread pool spins, so one
+    thread keeps the runtime predictable."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture
 def rng(request):
     """A fresh, reproducible-per-test random generator (seeded from the test's name)."""

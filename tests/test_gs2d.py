@@ -16,7 +16,15 @@ import torch
 
 from holowarp.camera import fibonacci_sphere, intrinsics_from_fov, look_at
 from holowarp.data.dataset import Dataset
-from holowarp.gaussians import FLAT_LOG_SCALE, GaussianModel, PlyError, load_gaussians_ply, write_gaussians_ply
+from holowarp.gaussians import (
+    FLAT_LOG_SCALE,
+    GaussianModel,
+    PlyError,
+    load_gaussians_ply,
+    quat_to_rotmat,
+    quats_facing,
+    write_gaussians_ply,
+)
 from holowarp.gs2d import GS2DConfig, init_points_from_masks, main, train_gs2d
 from holowarp.ops import rasterize_surfels
 
@@ -121,12 +129,7 @@ def tiny_dataset(n_views=8, size=32, n_surfels=120, seed=0):
     rng = np.random.default_rng(seed)
     d = fibonacci_sphere(n_surfels)
     means = 0.4 * d
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(z, d)
-    s = np.linalg.norm(axis, axis=1)
-    ang = np.arctan2(s, d[:, 2])
-    axis = axis / np.maximum(s, 1e-12)[:, None]
-    quats = np.concatenate([np.cos(ang / 2)[:, None], axis * np.sin(ang / 2)[:, None]], 1)
+    quats = quats_facing(d)
     colors = 0.5 + 0.4 * d  # smooth colour field
     K = intrinsics_from_fov(math.radians(40.0), size, size)
     eyes = 2.2 * fibonacci_sphere(n_views)
@@ -226,3 +229,12 @@ def test_config_presets_keep_the_order_of_events():
         assert c.opacity_reset_interval % c.densify_interval == 0
     p = GS2DConfig.paper()
     assert p.iters == 10_000 and p.resolution == 512
+
+
+def test_quats_facing_turns_z_onto_each_normal(rng):
+    d = rng.normal(size=(64, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    q = quats_facing(d)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
+    R = quat_to_rotmat(torch.tensor(q)).numpy()
+    np.testing.assert_allclose(R[:, :, 2], d, atol=1e-12)

@@ -15,6 +15,9 @@ from holowarp.ops import rasterize_mesh
 from holowarp.ops.mesh_raster import mesh_face_neighbors
 from holowarp.ops.mesh_raster_ref import _edge_neighbors, rasterize_mesh_ref
 
+# One torch thread for the whole module (see conftest.one_torch_thread).
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 FOV = math.radians(39.3)
 
 
@@ -68,16 +71,6 @@ def _inside_convex(P, corners):
 def _pixel_centres(res):
     ys, xs = np.mgrid[0:res, 0:res]
     return np.c_[xs.ravel() + 0.5, ys.ravel() + 0.5]
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    # Small tensors gain nothing from intra-op threads, and on a loaded 2-core machine
-    # torch's thread pool spins: one thread keeps these tests' runtime predictable.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture

@@ -13,6 +13,9 @@ from holowarp.ops import tet_energy as ops
 from holowarp.ops import tet_energy_ref as ref
 from holowarp.primitives import box_tetmesh
 
+# One torch thread for the whole module (see conftest.one_torch_thread).
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 # float64 central differences of float64 kernels: truncation ~ eps^2, rounding ~ 1e-16/eps
 FD_EPS = 1e-6
 FD_TOL = 1e-6
@@ -46,16 +49,6 @@ def _rel_err(g, fd) -> float:
 def _random_rotation(rng):
     q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
     return q * np.sign(np.linalg.det(q))
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    # Small tensors gain nothing from intra-op threads, and on a loaded 2-core machine
-    # torch's thread pool spins: one thread keeps these tests' runtime predictable.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 @pytest.fixture

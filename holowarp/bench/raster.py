@@ -26,6 +26,7 @@ import torch
 from holowarp.bench import peak_rss_mb
 from holowarp.camera import FOV_DEG, intrinsics_from_fov, look_at
 from holowarp.device import resolve_device
+from holowarp.gaussians import quats_facing
 
 __all__ = ["sphere_scene", "time_case", "main"]
 
@@ -41,12 +42,7 @@ def sphere_scene(n: int, res: int, *, seed: int = 0, device="cpu"):
     rng = np.random.default_rng(seed)
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(z, d)
-    s = np.linalg.norm(axis, axis=1)
-    ang = np.arctan2(s, d[:, 2])
-    axis = axis / np.maximum(s, 1e-12)[:, None]
-    quats = np.concatenate([np.cos(ang / 2)[:, None], axis * np.sin(ang / 2)[:, None]], 1)
+    quats = quats_facing(d)
     spacing = math.sqrt(4 * math.pi * 0.25 / n)
     scales = rng.uniform(0.5, 1.0, (n, 2)) * spacing
     opac = rng.uniform(0.3, 0.95, n)
