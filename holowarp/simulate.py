@@ -4,7 +4,7 @@ Simulates a tet mesh with holowarp's XPBD stable Neo-Hookean solver (method.md Â
 writes ``DIR/sim.usda`` (animated at 60 fps, Z up, metres) and ``DIR/report.json``. With
 ``--reference GT_MESH`` the reference is simulated in the same scene and the report gains
 ``sim_chamfer``; with ``--render`` PNG frames go to ``DIR/frames/``. The command is a thin
-wrapper of :func:`holowarp.sim.simulate`.
+wrapper of :func:`holowarp.simulation.simulate`.
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ def main(argv=None) -> int:
     from pathlib import Path
 
     from holowarp.device import DeviceError
-    from holowarp.sim import ModelError, SceneError, SimulationError, simulate
+    from holowarp.sim import ModelError, SceneError
+    from holowarp.simulation import SimulationError, simulate
 
     args = build_parser().parse_args(argv)
     if args.chamfer_samples is not None and args.chamfer_samples < 100:

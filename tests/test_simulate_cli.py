@@ -110,7 +110,7 @@ def test_reference_adds_sim_chamfer_at_five_times(tmp_path, box_vtu):
 def test_surface_reference_is_tetrahedralised(tmp_path):
     """A closed surface given as reference is tetrahedralised (fTetWild) into a positively
     oriented tet mesh with the same bounding box."""
-    from holowarp.sim.run import load_sim_mesh
+    from holowarp.simulation import load_sim_mesh
 
     ref = tmp_path / "cube.obj"
     write_surface(ref, box_tetmesh((1, 1, 1), (1.0, 1.0, 1.0)))
@@ -171,7 +171,7 @@ def test_missing_mesh_and_unknown_scene_are_clear_errors(tmp_path, box_vtu, caps
 
 def test_simulate_api_equals_cli(tmp_path, box_vtu):
     """One call does what the command does."""
-    from holowarp.sim import simulate
+    from holowarp.simulation import simulate
 
     rep = simulate(box_vtu, "drop", progress=False)
     out = tmp_path / "out"

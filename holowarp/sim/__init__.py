@@ -4,7 +4,8 @@ Newton's architecture: a static :class:`Model` built by a :class:`ModelBuilder`,
 :class:`State` objects (positions, velocities), a :class:`Control` (kinematic plate poses)
 and a solver, :class:`SolverXPBDNeoHookean`, whose ``step(state_in, state_out, control,
 contacts, dt)`` is pure in its inputs. Scenarios are TOML data (:func:`load_scene`);
-:func:`simulate` runs one end to end and writes USD and a report.
+:func:`run_scene` steps one in memory. Files (mesh loading, USD, reports, renders) belong to
+the application above this package, :mod:`holowarp.simulation`.
 """
 
 from holowarp.sim.control import Control
@@ -21,9 +22,10 @@ from holowarp.sim.solver import PAPER_DT, PAPER_ITERATIONS, STABILITY_RATIO, Sol
 from holowarp.sim.state import State
 from holowarp.sim.scene import Scene, SceneError, load_scene
 from holowarp.sim.analysis import pieces_apart
-from holowarp.sim.run import SimulationError, simulate
+from holowarp.sim.run import FPS, run_scene
 
 __all__ = [
+    "FPS",
     "GRAVITY",
     "PAPER_DT",
     "PAPER_ITERATIONS",
@@ -35,7 +37,6 @@ __all__ = [
     "Plate",
     "Scene",
     "SceneError",
-    "SimulationError",
     "STABILITY_RATIO",
     "SolverXPBDNeoHookean",
     "StepPlan",
@@ -43,5 +44,5 @@ __all__ = [
     "lame_parameters",
     "load_scene",
     "pieces_apart",
-    "simulate",
+    "run_scene",
 ]

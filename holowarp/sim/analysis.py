@@ -8,7 +8,7 @@ import numpy as np
 
 from holowarp.tetmesh import TetMesh
 
-__all__ = ["center_of_mass", "tet_volumes", "pieces_apart", "SEPARATION_FRACTION"]
+__all__ = ["center_of_mass", "pieces_apart", "SEPARATION_FRACTION"]
 
 #: Two pieces count as moved apart when their initial contact opened (or slid) by more than
 #: this fraction of the object's rest bounding-box diagonal.
@@ -19,14 +19,6 @@ def center_of_mass(positions, masses) -> np.ndarray:
     """Mass-weighted mean (3,) of ``positions`` (N, 3) with ``masses`` (N,)."""
     m = np.asarray(masses, dtype=np.float64)
     return (np.asarray(positions, dtype=np.float64) * m[:, None]).sum(0) / m.sum()
-
-
-def tet_volumes(positions, tets) -> np.ndarray:
-    """Signed volumes (M,) of ``tets`` (M, 4) at ``positions`` (N, 3), m³."""
-    x = np.asarray(positions, dtype=np.float64)
-    t = np.asarray(tets)
-    a = x[t[:, 0]]
-    return np.einsum("ij,ij->i", x[t[:, 1]] - a, np.cross(x[t[:, 2]] - a, x[t[:, 3]] - a)) / 6.0
 
 
 def pieces_apart(mesh: TetMesh, end_positions, *, separation: float | None = None,
