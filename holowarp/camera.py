@@ -25,7 +25,6 @@ __all__ = [
     "opengl_c2w_to_viewmat",
     "viewmat_to_opengl_c2w",
     "project_points",
-    "pixel_rays",
 ]
 
 #: Horizontal field of view of the synthetic protocol (TetSphere's renders), method.md §2.
@@ -120,28 +119,14 @@ def viewmat_to_opengl_c2w(viewmat: np.ndarray) -> np.ndarray:
 
 
 def project_points(points: np.ndarray, viewmat: np.ndarray, K: np.ndarray):
-    """Project world points (P, 3) to pixel coordinates (P, 2) and camera depth (P,)."""
-    pc = points @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = pc[:, 2]
-    uv = (pc[:, :2] / z[:, None]) @ K[:2, :2].T + K[:2, 2]
-    return uv, z
+    """Project world points (P, 3) to pixel coordinates (P, 2) and camera depth (P,).
 
-
-def pixel_rays(viewmat: np.ndarray, K: np.ndarray, width: int, height: int):
-    """World-space rays through every pixel centre.
-
-    Returns:
-        origin (3,), directions (H, W, 3) unit vectors, and ``z_per_t`` (H, W): camera depth
-        gained per unit distance along the ray (so depth = t * z_per_t).
+    ``u = K[0,0] x/z + K[0,1] y/z + K[0,2]``, ``v = K[1,1] y/z + K[1,2]`` (the skew ``K[0,1]``
+    of decomposed projections is honoured). Points behind the camera project through it, as
+    the formula says; callers that want visible points test ``z > 0``.
     """
-    xs = np.arange(width) + 0.5
-    ys = np.arange(height) + 0.5
-    u, v = np.meshgrid(xs, ys)
-    d_cam = np.stack(
-        [(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1
-    )
-    n = np.linalg.norm(d_cam, axis=-1, keepdims=True)
-    d_cam = d_cam / n
-    R = viewmat[:3, :3]
-    d_world = d_cam @ R  # R^T d for each ray
-    return camera_center(viewmat), d_world, d_cam[..., 2]
+    pc = np.asarray(points, dtype=np.float64) @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = pc[:, 2]
+    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)  # points on the camera plane: finite, not NaN
+    uv = (pc[:, :2] / zs[:, None]) @ K[:2, :2].T + K[:2, 2]
+    return uv, z

@@ -10,6 +10,10 @@ presets differ only in numbers:
 
 ``ReconConfig.scaled(factor)`` builds any other point on that line, which is how tests run a
 few hundred iterations of the real pipeline.
+
+The main loop is a sequence of typed events, :meth:`Schedule.events`: a :class:`Prune`, a
+:class:`MeshBlock` (mesh-only geometry block) or a :class:`GaussianStep`, in that order at
+any iteration where several fall.
 """
 
 from __future__ import annotations
@@ -20,10 +24,16 @@ from dataclasses import dataclass, field, replace
 __all__ = [
     "FAST_FACTOR",
     "Schedule",
+    "GaussianStep",
+    "Prune",
+    "MeshBlock",
     "Stage0Config",
+    "Stage0Schedule",
+    "PreflightConfig",
     "TetInitConfig",
     "TopologyConfig",
     "GeometryConfig",
+    "CleanupConfig",
     "ReconConfig",
     "preset",
     "PRESETS",
@@ -68,7 +78,27 @@ class Schedule:
             mesh_block_iters=s(self.mesh_block_iters),
         )
 
+    def events(self, start: int = 0):
+        """The main loop's events from main iteration ``start`` on, in order: at each
+        iteration i, a :class:`Prune` if i is in ``prune_at``, then a :class:`MeshBlock` if i
+        is in ``mesh_blocks_at``, then a :class:`GaussianStep` if i < ``main_iters``."""
+        for i in range(int(start), self.main_iters + 1):
+            if i in self.prune_at:
+                yield Prune(i, first=i == self.prune_at[0])
+            if i in self.mesh_blocks_at:
+                yield MeshBlock(i, index=self.mesh_blocks_at.index(i))
+            if i < self.main_iters:
+                yield GaussianStep(i, phase="topology" if i < self.topology_until else "gaussian")
+
+    @property
+    def total_mesh_iters(self) -> int:
+        """Mesh iterations over all blocks (T of lam(t) = (1 - t/T)^2, method.md §6)."""
+        return len(self.mesh_blocks_at) * self.mesh_block_iters
+
     def validate(self):
+        """Raise ``ValueError`` naming the first rule the schedule breaks."""
+        if min(self.stage0_iters, self.main_iters, self.mesh_block_iters) < 0:
+            raise ValueError("schedule: iteration counts must be >= 0")
         if not (0 < self.topology_until <= self.main_iters):
             raise ValueError(f"schedule: topology_until {self.topology_until} outside (0, {self.main_iters}]")
         if self.prune_at and self.prune_at[0] != self.topology_until:
@@ -82,14 +112,178 @@ class Schedule:
 
 
 @dataclass(frozen=True)
+class GaussianStep:
+    """One main-loop step on one training view (§5): ``phase`` is ``"topology"`` before the
+    first prune, ``"gaussian"`` after it."""
+
+    iteration: int
+    phase: str
+
+    @property
+    def key(self) -> str:
+        return f"step@{self.iteration}"
+
+
+@dataclass(frozen=True)
+class Prune:
+    """The prune at main iteration ``iteration`` (§5); ``first`` re-initialises the surfels."""
+
+    iteration: int
+    first: bool
+
+    @property
+    def key(self) -> str:
+        return f"prune@{self.iteration}"
+
+
+@dataclass(frozen=True)
+class MeshBlock:
+    """The ``index``-th mesh-only geometry block (§6), inserted at main iteration
+    ``iteration`` after that iteration's prune."""
+
+    iteration: int
+    index: int
+
+    @property
+    def key(self) -> str:
+        return f"mesh@{self.iteration}"
+
+
+#: Length of the stage-0 schedule the iteration fields of :class:`Stage0Config` are written for.
+STAGE0_REFERENCE_ITERS = 3000
+
+
+@dataclass(frozen=True)
+class Stage0Schedule:
+    """Stage 0's iteration numbers for a run of ``iters`` iterations
+    (:meth:`Stage0Config.schedule`)."""
+
+    iters: int
+    normal_from: int
+    dist_from: int
+    densify_from: int
+    densify_until: int
+    densify_interval: int
+    opacity_reset_interval: int
+    checkpoint_every: int
+
+
+@dataclass(frozen=True)
 class Stage0Config:
-    """Stage 0, 2DGS (method.md §3). Iterations come from :class:`Schedule`.
+    """Stage 0, 2D Gaussian surfels (method.md §3). The run's length is
+    ``Schedule.stage0_iters``; the iteration-valued fields below describe a run of
+    ``reference_iters`` iterations (:data:`STAGE0_REFERENCE_ITERS`) and :meth:`schedule`
+    stretches them to the run's length.
+
+    Per iteration one random training view is rendered and the loss is
+    ``(1 - dssim_weight) L1 + dssim_weight (1 - SSIM)`` + ``mask_weight |alpha - mask|`` +
+    2DGS normal consistency (``normal_weight``, from ``normal_from``) + 2DGS depth distortion
+    (``dist_weight``, from ``dist_from``), with 3DGS/2DGS adaptive density control.
 
     Attributes:
-        dssim_weight: lambda_DSSIM of the photometric loss (0.2).
+        background: colour the images are composited on, and rendered over (RGB in [0, 1]).
+        init_points: surfels sampled inside the masks' visual hull at the start.
+        init_candidates: uniform samples tested against the masks to find them.
+        init_opacity: initial opacity (3DGS: 0.1).
+        init_color_views: views averaged for each initial surfel's colour.
+        lr_means, lr_means_final: position learning rate, times the scene extent, decayed
+            exponentially from the first to the second over training (3DGS).
+        lr_scales, lr_quats, lr_opacity, lr_colors: Adam learning rates (3DGS/2DGS values).
+        scene_extent_factor: 3DGS's scene scale = this x the largest camera distance from
+            the cameras' mean.
+        dssim_weight: lambda_DSSIM of the photometric loss (method.md §3: 0.2).
+        mask_weight: weight of |alpha - mask|.
+        normal_weight, normal_from: 2DGS normal consistency weight and first iteration.
+        dist_weight, dist_from: 2DGS depth-distortion weight (on camera depth, metres^2) and
+            first iteration.
+        densify_from, densify_until, densify_interval: when clone/split/prune run.
+            ``densify_interval`` is not stretched: it is the number of views the gradient
+            statistics average over and the time a reset opacity has to recover.
+        opacity_reset_interval: opacities are reset to ``reset_opacity`` this often while
+            densifying (kept a multiple of ``densify_interval``).
+        reset_opacity: opacity after a reset.
+        grad_threshold: mean screen-space gradient (in NDC units, i.e. pixel gradient times
+            half the image size, as 3DGS) above which a surfel is cloned or split.
+        percent_dense: surfels larger than this fraction of the scene extent are split, smaller
+            ones cloned.
+        prune_opacity: surfels below this opacity are removed at each densification.
+        prune_big_fraction: after the first reset, surfels larger than this fraction of the
+            scene extent are removed.
+        max_gaussians: no clone/split beyond this many surfels.
+        split_count: surfels a split replaces one with.
+        checkpoint_every: iterations between checkpoints.
     """
 
+    reference_iters: int = STAGE0_REFERENCE_ITERS
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    init_points: int = 4000
+    init_candidates: int = 200_000
+    init_opacity: float = 0.1
+    init_color_views: int = 16
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacity: float = 0.05
+    lr_colors: float = 2.5e-3
+    scene_extent_factor: float = 1.1
     dssim_weight: float = 0.2
+    mask_weight: float = 0.1
+    normal_weight: float = 0.05
+    normal_from: int = 1000
+    dist_weight: float = 0.0
+    dist_from: int = 1000
+    densify_from: int = 100
+    densify_until: int = 1800
+    densify_interval: int = 100
+    opacity_reset_interval: int = 900
+    reset_opacity: float = 0.01
+    grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    prune_opacity: float = 0.05
+    prune_big_fraction: float = 0.1
+    max_gaussians: int = 300_000
+    split_count: int = 2
+    checkpoint_every: int = 500
+
+    def schedule(self, iters: int) -> Stage0Schedule:
+        """The iteration numbers for a run of ``iters`` iterations: every iteration field
+        times ``iters / reference_iters`` (rounded, at least 1), same order of events."""
+        f = iters / self.reference_iters
+        s = lambda n: max(1, int(round(n * f)))  # noqa: E731
+        di = self.densify_interval
+        return Stage0Schedule(
+            iters=int(iters),
+            normal_from=s(self.normal_from),
+            dist_from=s(self.dist_from),
+            densify_from=s(self.densify_from),
+            densify_until=s(self.densify_until),
+            densify_interval=di,
+            opacity_reset_interval=max(di, di * int(round(s(self.opacity_reset_interval) / di))),
+            checkpoint_every=s(self.checkpoint_every),
+        )
+
+    def validate(self):
+        if len(self.background) != 3:
+            raise ValueError(f"stage 0: background must be RGB, got {self.background}")
+        if self.reference_iters < 1 or self.densify_interval < 1 or self.split_count < 2:
+            raise ValueError("stage 0: reference_iters and densify_interval must be >= 1, split_count >= 2")
+
+
+@dataclass(frozen=True)
+class PreflightConfig:
+    """Checks that fail fast, before any work (:mod:`holowarp.preflight`).
+
+    Attributes:
+        min_views: fewest training views a reconstruction accepts.
+        full_mask_fraction: a mask covering more of its frame than this leaves no background.
+        hull_grid: nodes per side of the coarse carve that tests whether the masks' visual
+            hull spans a volume.
+    """
+
+    min_views: int = 8
+    full_mask_fraction: float = 0.98
+    hull_grid: int = 24
 
 
 @dataclass(frozen=True)
@@ -131,6 +325,14 @@ class TopologyConfig:
             per-pixel errors ("large-error-focused", §5).
         phi_init: "visual_hull" (signed graph distance to the mask-consistent region, an
             SDF-like start) or "inside" (every vertex at -phi_inside, all tets opaque).
+        phi_inside: |phi| of the constant initialisations.
+        initial_opacity: the free per-tet opacities' value before the field sets them.
+        color_init_views: at most this many training views average each surfel's initial
+            colour (every k-th view).
+        color_init_clip: initial colours are clipped to [c, 1 - c] so their logits are finite.
+        dent_faces, dent_rounds: a low-alpha tet with at least ``dent_faces`` of its four faces
+            on kept tets is kept (a one-tet pit); the rule is re-applied ``dent_rounds`` times,
+            as keeping a dent can make a neighbour one.
         continuous_opacity: False runs the ablation "w/o continuous opacity": one free
             opacity per tet instead of the vertex field phi.
     """
@@ -156,6 +358,11 @@ class TopologyConfig:
     normal_rank_fraction: float = 0.5
     phi_init: str = "visual_hull"
     phi_inside: float = 0.3
+    initial_opacity: float = 0.9
+    color_init_views: int = 24
+    color_init_clip: float = 0.02
+    dent_faces: int = 3
+    dent_rounds: int = 3
     continuous_opacity: bool = True
 
 
@@ -203,6 +410,23 @@ class GeometryConfig:
 
 
 @dataclass(frozen=True)
+class CleanupConfig:
+    """Cleanup (method.md §7, :mod:`holowarp.stages.cleanup`).
+
+    Attributes:
+        degenerate_rel: a tet is degenerate when |volume| < degenerate_rel * median |volume|.
+        cap_dihedral_deg: boundary tets with a smaller minimum dihedral angle are dropped.
+        max_cap_rounds: passes of cap removal.
+        max_repair_rounds: cap on manifold-repair rounds (each round fixes every defect found).
+    """
+
+    degenerate_rel: float = 1e-3
+    cap_dihedral_deg: float = 5.0
+    max_cap_rounds: int = 5
+    max_repair_rounds: int = 50
+
+
+@dataclass(frozen=True)
 class ReconConfig:
     """The whole reconstruction.
 
@@ -219,9 +443,11 @@ class ReconConfig:
     resolution: int = 512
     schedule: Schedule = field(default_factory=Schedule)
     stage0: Stage0Config = field(default_factory=Stage0Config)
+    preflight: PreflightConfig = field(default_factory=PreflightConfig)
     tet_init: TetInitConfig = field(default_factory=TetInitConfig)
     topology: TopologyConfig = field(default_factory=TopologyConfig)
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    cleanup: CleanupConfig = field(default_factory=CleanupConfig)
     checkpoint_every: int = 250
     seed: int = 0
 
@@ -269,3 +495,4 @@ def preset(name: str) -> ReconConfig:
         return PRESETS[name]()
     except KeyError:
         raise ValueError(f"--preset {name!r}: expected one of {', '.join(PRESETS)}") from None
+

@@ -7,12 +7,14 @@ boundary surface only). IN is any tet-mesh format (``.vtu``, ``.msh``, ``.npz``,
 
 from __future__ import annotations
 
-import argparse
 import sys
+from pathlib import Path
 
-from holowarp.mesh_io import SURFACE_FORMATS, TET_FORMATS, MeshIOError, read_tetmesh, write_surface, write_tetmesh
+from holowarp import cli
+from holowarp.mesh_io import TET_FORMATS, MeshIOError, read_tetmesh, write_tetmesh
+from holowarp.surface_io import SURFACE_WRITE_FORMATS, write_surface
 
-__all__ = ["convert", "main"]
+__all__ = ["convert", "main", "build_parser"]
 
 
 def convert(src, dst, *, orient: bool = False, material=None) -> dict:
@@ -22,58 +24,64 @@ def convert(src, dst, *, orient: bool = False, material=None) -> dict:
         orient: reorder inverted tets before writing (their count is reported).
         material: :class:`holowarp.usd.PhysicsMaterial` for USD outputs.
     """
-    from pathlib import Path
-
+    ext = Path(dst).suffix.lower()
+    if ext not in TET_FORMATS + SURFACE_WRITE_FORMATS:
+        raise MeshIOError(
+            f"{dst}: unknown output extension {ext!r}; use one of {', '.join(TET_FORMATS + SURFACE_WRITE_FORMATS)}"
+        )
     mesh = read_tetmesh(src)
     flipped = 0
     if orient:
         mesh, flipped = mesh.oriented()
-    ext = Path(dst).suffix.lower()
-    if ext in SURFACE_FORMATS:
+    if ext in SURFACE_WRITE_FORMATS:
         write_surface(dst, mesh)
     elif ext in (".usd", ".usda", ".usdc"):
         write_tetmesh(dst, mesh, material=material, name=Path(src).stem)
-    elif ext in TET_FORMATS:
-        write_tetmesh(dst, mesh)
     else:
-        raise MeshIOError(
-            f"{dst}: unknown output extension {ext!r}; use one of {', '.join(TET_FORMATS + SURFACE_FORMATS)}"
-        )
+        write_tetmesh(dst, mesh)
     info = mesh.summary()
     info["flipped"] = flipped
     return info
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(
-        prog="python -m holowarp.convert",
-        description="Convert a tet mesh between .vtu, .msh, .npz and USD, or export its boundary as .obj/.ply.",
-    )
-    p.add_argument("src", metavar="IN", help="input tet mesh (.vtu, .msh, .npz, .usd, .usda)")
-    p.add_argument("dst", metavar="OUT", help="output file; its extension picks the format")
+def build_parser():
+    p = cli.parser("holowarp.convert",
+                   "Convert a tet mesh between .vtu, .msh, .npz and USD, or export its boundary as .obj/.ply.")
+    p.add_argument("src", metavar="IN", help="input tet mesh (" + ", ".join(TET_FORMATS) + ")")
+    p.add_argument("dst", metavar="OUT", help="output file; its extension picks the format ("
+                   + ", ".join(TET_FORMATS + SURFACE_WRITE_FORMATS) + ")")
     p.add_argument("--orient", action="store_true", help="reorder inverted tets before writing")
-    p.add_argument("--youngs-modulus", type=float, default=None, help="USD physics material E [Pa]")
-    p.add_argument("--poissons-ratio", type=float, default=None, help="USD physics material nu")
-    p.add_argument("--density", type=float, default=None, help="USD physics material density [kg/m^3]")
-    args = p.parse_args(argv)
-    material = None
-    if any(x is not None for x in (args.youngs_modulus, args.poissons_ratio, args.density)):
-        from holowarp.usd import PhysicsMaterial
+    p.add_argument("--youngs-modulus", type=float, default=None, metavar="PA", help="USD physics material E [Pa] (> 0)")
+    p.add_argument("--poissons-ratio", type=float, default=None, metavar="NU",
+                   help="USD physics material nu, in [0, 0.5)")
+    p.add_argument("--density", type=float, default=None, metavar="RHO",
+                   help="USD physics material density [kg/m^3] (> 0)")
+    cli.add_device(p, note="convert runs no kernels; accepted so every command takes the same options")
+    cli.add_quiet(p)
+    return p
 
-        d = PhysicsMaterial()
-        try:
-            material = PhysicsMaterial(
-                youngs_modulus=args.youngs_modulus or d.youngs_modulus,
-                poissons_ratio=d.poissons_ratio if args.poissons_ratio is None else args.poissons_ratio,
-                density=args.density or d.density,
-            )
-        except ValueError as e:
-            p.error(str(e))
+
+def _material(args):
+    if all(x is None for x in (args.youngs_modulus, args.poissons_ratio, args.density)):
+        return None
+    from holowarp.usd import PhysicsMaterial
+
+    d = PhysicsMaterial()
     try:
-        info = convert(args.src, args.dst, orient=args.orient, material=material)
-    except (MeshIOError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+        return PhysicsMaterial(
+            youngs_modulus=d.youngs_modulus if args.youngs_modulus is None else args.youngs_modulus,
+            poissons_ratio=d.poissons_ratio if args.poissons_ratio is None else args.poissons_ratio,
+            density=d.density if args.density is None else args.density,
+        )
+    except ValueError as e:
+        cli.fail(f"material: {e}")
+
+
+def _run(args) -> int:
+    from holowarp.device import resolve_device
+
+    resolve_device(args.device)
+    info = convert(args.src, args.dst, orient=args.orient, material=_material(args))
     print(
         f"wrote {args.dst}: {info['vertices']} vertices, {info['tets']} tets, "
         f"{info['boundary_faces']} boundary faces, {info['components']} component(s), "
@@ -81,6 +89,10 @@ def main(argv=None) -> int:
         + (f", flipped={info['flipped']}" if args.orient else "")
     )
     return 0
+
+
+def main(argv=None) -> int:
+    return cli.run(_run, build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":

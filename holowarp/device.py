@@ -7,14 +7,54 @@ message instead of deep inside a kernel launch.
 
 from __future__ import annotations
 
-__all__ = ["DeviceError", "resolve_device", "torch_device", "init_warp"]
+import contextlib
+import os
+import sys
+import tempfile
+
+from holowarp.errors import InputError
+
+__all__ = ["DeviceError", "resolve_device", "init_warp"]
+
+#: What Warp's native library prints to stderr at start-up on a machine without a CUDA
+#: driver. On such a machine every run is a CPU run and the line is noise; a CUDA request
+#: there fails with :class:`DeviceError` instead.
+_NO_DRIVER_LINE = "Could not find or load the NVIDIA CUDA driver"
 
 
-class DeviceError(RuntimeError):
+class DeviceError(InputError):
     """The requested compute device is not available."""
 
 
 _warp_ready = False
+
+
+@contextlib.contextmanager
+def _filtered_native_stderr():
+    """Capture what native code writes to file descriptor 2 and re-emit all of it except
+    Warp's missing-driver warning (it is written with C ``fprintf``, below Python's
+    ``sys.stderr``)."""
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, ValueError, OSError):  # no real stderr (embedded, captured)
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    with tempfile.TemporaryFile(mode="w+b") as tmp:
+        os.dup2(tmp.fileno(), fd)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, fd)
+            os.close(saved)
+            tmp.seek(0)
+            text = tmp.read().decode(errors="replace")
+            kept = [line for line in text.splitlines(keepends=True) if _NO_DRIVER_LINE not in line]
+            if kept:
+                sys.stderr.write("".join(kept))
+                sys.stderr.flush()
 
 
 def init_warp():
@@ -28,7 +68,8 @@ def init_warp():
         # would corrupt JSON printed by commands, so raise the log level too.
         if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
             wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
-        wp.init()
+        with _filtered_native_stderr():
+            wp.init()
         _warp_ready = True
     return wp
 
@@ -51,25 +92,13 @@ def resolve_device(device: str | None = "cpu") -> str:
     if device == "cuda" or device.startswith("cuda:"):
         wp = init_warp()
         if not wp.is_cuda_available():
-            raise DeviceError(
-                f"--device {device}: no CUDA GPU is visible to Warp on this machine; "
-                "use --device cpu"
-            )
+            raise DeviceError(f"--device {device}: no CUDA GPU is visible to Warp on this machine; use --device cpu")
         idx = 0 if device == "cuda" else device.split(":", 1)[1]
         try:
             idx = int(idx)
-        except ValueError as e:
-            raise DeviceError(f"--device {device}: expected cuda or cuda:N") from e
-        if idx >= wp.get_cuda_device_count():
-            raise DeviceError(
-                f"--device {device}: only {wp.get_cuda_device_count()} CUDA device(s) present"
-            )
+        except ValueError:
+            raise DeviceError(f"--device {device}: expected cuda or cuda:N") from None
+        if not 0 <= idx < wp.get_cuda_device_count():
+            raise DeviceError(f"--device {device}: only {wp.get_cuda_device_count()} CUDA device(s) present")
         return f"cuda:{idx}"
     raise DeviceError(f"--device {device!r}: expected 'cpu', 'cuda' or 'cuda:N'")
-
-
-def torch_device(device: str | None = "cpu"):
-    """Return the ``torch.device`` for a (validated) holowarp device string."""
-    import torch
-
-    return torch.device(resolve_device(device))

@@ -10,11 +10,12 @@ table printed on stdout also gives the LPIPS note (unavailable and why) and timi
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 
-__all__ = ["main", "format_table"]
+from holowarp import cli
+
+__all__ = ["main", "build_parser", "format_table"]
 
 _ROWS = [
     ("chamfer_l1", "Chamfer-L1", "lower is better"),
@@ -74,59 +75,48 @@ def format_table(metrics: dict, info: dict | None = None, *, title: str = "") ->
     return "\n".join(lines)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m holowarp.evaluate",
-        description="Evaluate a reconstructed tet mesh against the ground truth (method.md §9).",
-    )
-    p.add_argument("pred", metavar="PRED", help="predicted tet mesh (.vtu, .msh, .npz, .usd[a|c])")
-    p.add_argument("--gt", metavar="GT", help="ground-truth surface (.obj/.ply/...) or tet mesh; default: DIR/gt.obj of --dataset")
+def build_parser():
+    p = cli.parser("holowarp.evaluate", "Evaluate a reconstructed tet mesh against the ground truth (method.md §9).")
+    p.add_argument("pred", metavar="PRED", help="predicted tet mesh (.vtu, .msh, .npz, .usd[a|c]) or surface")
+    p.add_argument("--gt", metavar="GT", help="ground-truth surface (.obj, .off, .stl, .ply, .glb) or tet mesh; "
+                   "default: DIR/gt.obj of --dataset")
     p.add_argument("--dataset", metavar="DIR", help="dataset folder: adds psnr_mask over its test views")
-    p.add_argument("--res", type=int, default=None, help="load the dataset at this resolution (longer side)")
+    p.add_argument("--res", type=int, default=None, metavar="PX", help="load the dataset at this resolution (longer side)")
     p.add_argument("--json", metavar="OUT", help="write the metrics JSON here (atomically)")
     p.add_argument("--details", metavar="OUT", help="also write non-contract details (timings, LPIPS note, counts)")
-    p.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh (default 100000)")
-    p.add_argument("--volume-points", type=int, default=100_000, help="uniform points for volume IoU (default 100000)")
+    p.add_argument("--samples", type=int, default=100_000, metavar="N", help="surface samples per mesh (default 100000, >= 1)")
+    p.add_argument("--volume-points", type=int, default=100_000, metavar="N",
+                   help="uniform points for volume IoU (default 100000, >= 1)")
     p.add_argument("--seed", type=int, default=0, help="sampling seed (default 0)")
-    p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N (default cpu)")
+    cli.add_device(p)
+    cli.add_quiet(p)
     return p
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+def _run(args) -> int:
     from pathlib import Path
 
-    from holowarp.data.dataset import DatasetError
-    from holowarp.device import DeviceError
     from holowarp.fileio import atomic_write_json
     from holowarp.metrics import EvaluationError, evaluate_mesh
 
-    try:
-        dataset = None
-        if args.dataset:
-            from holowarp.data.loaders import load_dataset
+    if args.samples < 1:
+        cli.fail(f"--samples must be >= 1, got {args.samples}")
+    if args.volume_points < 1:
+        cli.fail(f"--volume-points must be >= 1, got {args.volume_points}")
+    dataset = None
+    if args.dataset:
+        from holowarp.data.loaders import load_dataset
 
-            dataset = load_dataset(args.dataset, res=args.res)
-        gt = args.gt
-        if gt is None:
-            if dataset is None or dataset.gt_mesh is None:
-                raise EvaluationError("--gt is required (no --dataset with a gt.obj was given)")
-            gt = dataset.gt_mesh
-        if not Path(args.pred).is_file():
-            raise EvaluationError(f"{args.pred}: no such prediction file")
-        metrics, info = evaluate_mesh(
-            args.pred,
-            gt,
-            dataset=dataset,
-            num_samples=args.samples,
-            volume_points=args.volume_points,
-            seed=args.seed,
-            device=args.device,
-            details=True,
-        )
-    except (EvaluationError, DatasetError, DeviceError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+        dataset = load_dataset(args.dataset, res=args.res)
+    gt = args.gt
+    if gt is None:
+        if dataset is None or dataset.gt_mesh is None:
+            raise EvaluationError("--gt is required (no --dataset with a gt.obj was given)")
+        gt = dataset.gt_mesh
+    if not Path(args.pred).is_file():
+        raise EvaluationError(f"{args.pred}: no such prediction file")
+    metrics, info = evaluate_mesh(args.pred, gt, dataset=dataset, num_samples=args.samples,
+                                  volume_points=args.volume_points, seed=args.seed, device=args.device, details=True)
     print(format_table(metrics, info, title=f"{args.pred} vs {gt}"))
     if args.json:
         atomic_write_json(args.json, metrics)
@@ -134,6 +124,10 @@ def main(argv=None) -> int:
     if args.details:
         atomic_write_json(args.details, info)
     return 0
+
+
+def main(argv=None) -> int:
+    return cli.run(_run, build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":

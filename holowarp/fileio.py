@@ -1,6 +1,6 @@
-"""Atomic file writes: a reader never sees a half-written output.
+"""File helpers: atomic writes, checked inputs, quiet third-party readers.
 
-Every writer in holowarp writes to a temporary file in the destination's folder and renames
+Atomic writes: a reader never sees a half-written output. Every writer in holowarp writes to a temporary file in the destination's folder and renames
 it over the destination only after the write succeeded (``os.replace`` is atomic on POSIX
 and Windows within one filesystem). A failed or interrupted write leaves any previous good
 file untouched.
@@ -9,12 +9,13 @@ file untouched.
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["atomic_path", "atomic_write_text", "atomic_write_json", "atomic_save_npz"]
+__all__ = ["atomic_path", "atomic_write_text", "atomic_write_json", "atomic_save_npz", "check_input_file", "quiet_stdio"]
 
 
 @contextlib.contextmanager
@@ -84,3 +85,25 @@ def atomic_save_npz(path: str | os.PathLike, **arrays) -> Path:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)
     return Path(path)
+
+
+def check_input_file(path: str | os.PathLike, *, error: type[Exception], what: str = "file") -> Path:
+    """``path`` as a :class:`Path` if it names a readable, non-empty file; otherwise raise
+    ``error`` with a message that starts with the path and says why."""
+    path = Path(path)
+    if not path.exists():
+        raise error(f"{path}: no such file")
+    if path.is_dir():
+        raise error(f"{path}: is a folder, expected a {what}")
+    if not os.access(path, os.R_OK):
+        raise error(f"{path}: not readable (permission denied)")
+    if path.stat().st_size == 0:
+        raise error(f"{path}: {what} is empty")
+    return path
+
+
+@contextlib.contextmanager
+def quiet_stdio():
+    """Silence Python-level stdout/stderr chatter of third-party readers (meshio, trimesh)."""
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+        yield

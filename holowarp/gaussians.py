@@ -71,11 +71,17 @@ def sh_dc_to_rgb(sh_dc):
 
 
 def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices [N, 3, 3] of wxyz quaternions [N, 4] (normalised here); the same
-    function the rasteriser's reference uses."""
-    from holowarp.ops.surfels_ref import quat_wxyz_to_matrix
-
-    return quat_wxyz_to_matrix(torch.nn.functional.normalize(quats, dim=-1))
+    """Rotation matrices [N, 3, 3] of wxyz quaternions [N, 4] (normalised here)."""
+    q = torch.nn.functional.normalize(quats, dim=-1)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(q.shape[:-1] + (3, 3))  # fmt: skip
 
 
 
@@ -89,6 +95,7 @@ def quats_facing(normals) -> np.ndarray:
     ang = np.arctan2(s, d[:, 2])
     axis = axis / np.maximum(s, 1e-12)[:, None]
     return np.concatenate([np.cos(ang / 2)[:, None], axis * np.sin(ang / 2)[:, None]], 1)
+
 
 def _logit(p):
     p = np.clip(np.asarray(p, dtype=np.float64), 1e-7, 1 - 1e-7)

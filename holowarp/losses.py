@@ -3,9 +3,8 @@
 All functions are plain differentiable torch. Images are ``[H, W, C]`` (channels last, as the
 rasterisers return them) or ``[B, C, H, W]``; colours in [0, 1].
 
-- :func:`ssim` (own implementation: Gaussian window 11, sigma 1.5, valid convolution, the
-  constants of Wang et al. 2004), :func:`psnr`, :func:`l1_dssim_loss` (the photometric loss
-  ``(1 - 0.2) L1 + 0.2 (1 - SSIM)``, method.md §3).
+- :func:`l1_dssim_loss`: the photometric loss ``(1 - 0.2) L1 + 0.2 (1 - SSIM)`` (method.md
+  §3), with the SSIM of :func:`holowarp.metrics.image.ssim`.
 - :func:`mask_loss`: L1 between rendered opacity and the foreground mask.
 - :func:`depth_to_normal`: world-space normals of the surface a depth map describes.
 - :func:`normal_consistency_loss` and :func:`distortion_loss`: the 2DGS regularisers.
@@ -18,14 +17,11 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
+
+from holowarp.metrics.image import ssim
 
 __all__ = [
     "LAMBDA_DSSIM",
-    "SSIM_WINDOW",
-    "SSIM_SIGMA",
-    "ssim",
-    "psnr",
     "l1_dssim_loss",
     "mask_loss",
     "depth_to_normal",
@@ -37,106 +33,6 @@ __all__ = [
 
 #: Weight of the D-SSIM term in the photometric loss (method.md §3, §5).
 LAMBDA_DSSIM = 0.2
-#: SSIM Gaussian window size and standard deviation (Wang et al. 2004).
-SSIM_WINDOW = 11
-SSIM_SIGMA = 1.5
-_SSIM_K1 = 0.01
-_SSIM_K2 = 0.03
-
-
-def _to_bchw(img: torch.Tensor) -> torch.Tensor:
-    if img.ndim == 3:  # [H, W, C]
-        return img.permute(2, 0, 1).unsqueeze(0)
-    if img.ndim == 4:
-        return img
-    raise ValueError(f"expected an image [H, W, C] or [B, C, H, W], got shape {tuple(img.shape)}")
-
-
-def _gaussian_window(size: int, sigma: float, dtype, device) -> torch.Tensor:
-    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
-    g = torch.exp(-(x**2) / (2.0 * sigma**2))
-    return g / g.sum()
-
-
-_BAND_CACHE: dict = {}
-#: Up to this image side the valid Gaussian filter runs as two banded matrix products (much
-#: faster than a depthwise convolution on the CPU); above it as a separable convolution.
-_BAND_MAX_SIDE = 320
-
-
-def _band(n: int, size: int, sigma: float, dtype, device) -> torch.Tensor:
-    """[n - size + 1, n] matrix whose rows hold the window at successive offsets."""
-    key = (n, size, sigma, dtype, str(device))
-    band = _BAND_CACHE.get(key)
-    if band is None:
-        g = _gaussian_window(size, sigma, dtype, device)
-        m = n - size + 1
-        band = torch.zeros(m, n, dtype=dtype, device=device)
-        rows = torch.arange(m, device=device)
-        for k in range(size):
-            band[rows, rows + k] = g[k]
-        if len(_BAND_CACHE) > 32:
-            _BAND_CACHE.clear()
-        _BAND_CACHE[key] = band
-    return band
-
-
-def _gaussian_blur_valid(t: torch.Tensor, size: int, sigma: float) -> torch.Tensor:
-    """Separable Gaussian filter without padding of [B, C, H, W] -> [B, C, H', W']."""
-    h, w = t.shape[-2:]
-    if max(h, w) <= _BAND_MAX_SIDE:
-        bh = _band(h, size, sigma, t.dtype, t.device)
-        bw = _band(w, size, sigma, t.dtype, t.device)
-        return bh @ t @ bw.T
-    c = t.shape[1]
-    g = _gaussian_window(size, sigma, t.dtype, t.device)
-    wx = g.view(1, 1, 1, -1).expand(c, 1, 1, size)
-    wy = g.view(1, 1, -1, 1).expand(c, 1, size, 1)
-    return F.conv2d(F.conv2d(t, wx, groups=c), wy, groups=c)
-
-
-def ssim(
-    img1: torch.Tensor,
-    img2: torch.Tensor,
-    *,
-    data_range: float = 1.0,
-    window_size: int = SSIM_WINDOW,
-    sigma: float = SSIM_SIGMA,
-    reduce: bool = True,
-) -> torch.Tensor:
-    """Structural similarity of two images (same shape, ``[H, W, C]`` or ``[B, C, H, W]``).
-
-    Gaussian-weighted local statistics with a separable window and *valid* convolution (no
-    padding), the convention of Wang et al.'s reference code and ``pytorch-msssim``.
-
-    Returns:
-        the mean SSIM (scalar) if ``reduce``, else the SSIM map ``[B, C, H', W']``.
-    """
-    if img1.shape != img2.shape:
-        raise ValueError(f"ssim: image shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
-    x, y = _to_bchw(img1), _to_bchw(img2)
-    c = x.shape[1]
-    if min(x.shape[-2:]) < window_size:
-        raise ValueError(f"ssim: images {tuple(x.shape[-2:])} are smaller than the {window_size}-pixel window")
-    # All five local moments in one filtering pass.
-    stats = _gaussian_blur_valid(torch.cat([x, y, x * x, y * y, x * y], dim=1), window_size, sigma)
-    mu_x, mu_y, exx, eyy, exy = stats.split(c, dim=1)
-    sxx = exx - mu_x * mu_x
-    syy = eyy - mu_y * mu_y
-    sxy = exy - mu_x * mu_y
-    c1 = (_SSIM_K1 * data_range) ** 2
-    c2 = (_SSIM_K2 * data_range) ** 2
-    cs = (2.0 * sxy + c2) / (sxx + syy + c2)
-    smap = ((2.0 * mu_x * mu_y + c1) / (mu_x * mu_x + mu_y * mu_y + c1)) * cs
-    return smap.mean() if reduce else smap
-
-
-def psnr(pred: torch.Tensor, target: torch.Tensor, *, data_range: float = 1.0) -> torch.Tensor:
-    """Peak signal-to-noise ratio in dB over all elements (inf for identical images)."""
-    mse = torch.mean((pred - target) ** 2)
-    return 10.0 * torch.log10(data_range**2 / mse)
-
-
 def l1_dssim_loss(pred: torch.Tensor, target: torch.Tensor, *, lambda_dssim: float = LAMBDA_DSSIM) -> torch.Tensor:
     """``(1 - lambda) L1 + lambda (1 - SSIM)`` (method.md §3; lambda = 0.2)."""
     l1 = (pred - target).abs().mean()

@@ -1,8 +1,9 @@
-"""Tet-mesh and surface I/O with clear errors and atomic writes.
+"""Tet-mesh I/O with clear errors and atomic writes.
 
 Tet meshes: ``.vtu`` (VTK XML unstructured grid), ``.msh`` (Gmsh 4.1 written; 2.2 and 4.x
 read), ``.npz`` (``vertices`` (N,3) float64, ``tets`` (M,4) int32), and ``.usd``/``.usda``/
-``.usdc`` (the first ``UsdGeom.TetMesh``). Boundary surfaces: ``.obj`` and ``.ply``.
+``.usdc`` (the first ``UsdGeom.TetMesh``). Triangle surfaces (a tet mesh's boundary
+included) are :mod:`holowarp.surface_io`'s.
 
 VTK and Gmsh order a linear tetrahedron's nodes like holowarp (positive volume for
 ``det[b-a, c-a, d-a] > 0``), so no reordering happens on either side.
@@ -15,28 +16,20 @@ file in the destination folder that is renamed over the destination only on succ
 
 from __future__ import annotations
 
-import contextlib
-import io
 import os
 from pathlib import Path
 
 import numpy as np
 
-from holowarp.fileio import atomic_path
+from holowarp.errors import InputError
+from holowarp.fileio import atomic_path, check_input_file
+from holowarp.fileio import quiet_stdio as _quiet
+from holowarp.surface_io import SURFACE_READ_FORMATS
 from holowarp.tetmesh import TetMesh, TetMeshError
 
-__all__ = [
-    "MeshIOError",
-    "TET_FORMATS",
-    "SURFACE_FORMATS",
-    "read_tetmesh",
-    "write_tetmesh",
-    "write_surface",
-    "read_surface",
-]
+__all__ = ["MeshIOError", "TET_FORMATS", "read_tetmesh", "write_tetmesh"]
 
 TET_FORMATS = (".vtu", ".msh", ".npz", ".usd", ".usda", ".usdc")
-SURFACE_FORMATS = (".obj", ".ply")
 
 # meshio cell types that are volume elements but not linear tets: refuse them by name.
 _OTHER_VOLUME_CELLS = {
@@ -45,26 +38,12 @@ _OTHER_VOLUME_CELLS = {
 }
 
 
-class MeshIOError(ValueError):
+class MeshIOError(InputError):
     """A mesh file cannot be read or written; the message names the file and the reason."""
 
 
-@contextlib.contextmanager
-def _quiet():
-    """meshio prints warnings to stdout; keep library chatter out of the user's terminal."""
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-        yield
-
-
 def _check_input(path) -> Path:
-    path = Path(path)
-    if not path.exists():
-        raise MeshIOError(f"{path}: no such file")
-    if path.is_dir():
-        raise MeshIOError(f"{path}: is a folder, expected a mesh file")
-    if path.stat().st_size == 0:
-        raise MeshIOError(f"{path}: file is empty")
-    return path
+    return check_input_file(path, error=MeshIOError, what="mesh file")
 
 
 def _build(path: Path, vertices, tets) -> TetMesh:
@@ -90,7 +69,7 @@ def read_tetmesh(path: str | os.PathLike) -> TetMesh:
     """
     path = _check_input(path)
     ext = path.suffix.lower()
-    if ext in SURFACE_FORMATS:
+    if ext in SURFACE_READ_FORMATS:
         raise MeshIOError(
             f"{path}: {ext} holds a surface, not a tet mesh; tet meshes are {', '.join(TET_FORMATS)}"
         )
@@ -185,66 +164,3 @@ def write_tetmesh(path: str | os.PathLike, mesh: TetMesh, **usd_kwargs) -> Path:
             else:
                 meshio.write(tmp, m, file_format="vtu", binary=True, compression="zlib")
     return path
-
-
-def write_surface(path: str | os.PathLike, surface) -> Path:
-    """Write a triangle surface as ``.obj`` or ``.ply`` (binary), atomically.
-
-    Args:
-        surface: a :class:`TetMesh` (its outward boundary is written, vertices compacted) or
-            a ``(vertices (V,3), faces (F,3))`` pair.
-    """
-    path = Path(path)
-    ext = path.suffix.lower()
-    if ext not in SURFACE_FORMATS:
-        raise MeshIOError(f"{path}: surface output must be one of {', '.join(SURFACE_FORMATS)}, got {ext!r}")
-    if isinstance(surface, TetMesh):
-        V, F = surface.surface_mesh()
-    else:
-        V, F = surface
-    V = np.asarray(V, dtype=np.float64)
-    F = np.asarray(F, dtype=np.int64)
-    with atomic_path(path) as tmp:
-        if ext == ".obj":
-            with open(tmp, "w", encoding="ascii") as f:
-                f.write("# holowarp boundary surface (outward-wound triangles)\n")
-                np.savetxt(f, V, fmt="v %.9g %.9g %.9g")
-                np.savetxt(f, F + 1, fmt="f %d %d %d")
-        else:
-            header = (
-                "ply\nformat binary_little_endian 1.0\ncomment holowarp boundary surface\n"
-                f"element vertex {len(V)}\nproperty float x\nproperty float y\nproperty float z\n"
-                f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n"
-            )
-            fr = np.empty(len(F), dtype=[("n", "u1"), ("i", "<i4", (3,))])
-            fr["n"] = 3
-            fr["i"] = F
-            with open(tmp, "wb") as f:
-                f.write(header.encode("ascii"))
-                f.write(V.astype("<f4").tobytes())
-                f.write(fr.tobytes())
-    return path
-
-
-def read_surface(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a triangle surface (``.obj``, ``.ply``, ``.stl``, ...) as (V (N,3), F (F,3)).
-
-    Positions are welded (UV-seam duplicates merged), because textured OBJs split vertices
-    along seams and geometry code needs one vertex per position.
-    """
-    import trimesh
-
-    path = _check_input(path)
-    try:
-        with _quiet():
-            tm = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:
-        raise MeshIOError(f"{path}: cannot read surface ({type(e).__name__}: {e})") from None
-    if not hasattr(tm, "faces") or len(tm.faces) == 0:
-        raise MeshIOError(f"{path}: no triangles found")
-    V = np.asarray(tm.vertices, dtype=np.float64)
-    if not np.all(np.isfinite(V)):
-        raise MeshIOError(f"{path}: non-finite vertex coordinates")
-    F = np.asarray(tm.faces, dtype=np.int64)
-    uniq, inv = np.unique(V, axis=0, return_inverse=True)
-    return uniq, inv.reshape(-1)[F].astype(np.int32)

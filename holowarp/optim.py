@@ -7,7 +7,7 @@ step. A shared normaliser keeps the relative sizes of the gradient entries, so t
 a uniformly scaled gradient-momentum step: vertices with small gradients are not blown up
 to the same step length as vertices with large ones, which is what keeps a mesh smooth.
 
-``cosine_lr`` / ``CosineLR`` anneal the learning rate from 2e-4 to 1e-4 (method.md §6).
+``cosine_lr`` anneals the learning rate from 2e-4 to 1e-4 (method.md §6).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import math
 
 import torch
 
-__all__ = ["LR_START", "LR_END", "UniformAdam", "cosine_lr", "CosineLR"]
+__all__ = ["LR_START", "LR_END", "UniformAdam", "cosine_lr"]
 
 #: Vertex learning rate at the start and end of a geometry block, method.md §6.
 LR_START = 2.0e-4
@@ -106,26 +106,3 @@ def cosine_lr(step: int, total: int, lr_start: float = LR_START, lr_end: float =
         raise ValueError(f"cosine_lr: total must be positive, got {total}")
     t = min(max(int(step), 0), int(total))
     return lr_end + 0.5 * (lr_start - lr_end) * (1.0 + math.cos(math.pi * t / total))
-
-
-class CosineLR(torch.optim.lr_scheduler.LRScheduler):
-    """Torch scheduler setting every group's lr to :func:`cosine_lr` of the step count.
-
-    Example:
-        >>> opt = UniformAdam([x])
-        >>> sched = CosineLR(opt, total=5000)
-        >>> for it in range(5000):
-        ...     loss = ...; opt.zero_grad(); loss.backward(); opt.step(); sched.step()
-    """
-
-    def __init__(self, optimizer, total: int, lr_start: float = LR_START, lr_end: float = LR_END, last_epoch: int = -1):
-        if total <= 0:
-            raise ValueError(f"CosineLR: total must be positive, got {total}")
-        self.total = int(total)
-        self.lr_start = float(lr_start)
-        self.lr_end = float(lr_end)
-        super().__init__(optimizer, last_epoch)
-
-    def get_lr(self):
-        lr = cosine_lr(self.last_epoch, self.total, self.lr_start, self.lr_end)
-        return [lr for _ in self.optimizer.param_groups]

@@ -7,47 +7,41 @@ object (bob, genus 1) and reconstructs it. See :func:`holowarp.pipeline.reconstr
 
 from __future__ import annotations
 
-import argparse
-import logging
 import sys
+from dataclasses import replace
 
-__all__ = ["main"]
+from holowarp import cli
+
+__all__ = ["main", "build_parser", "config_from_args"]
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="python -m holowarp.reconstruct",
-        description="Reconstruct ONE connected, simulation-ready tet mesh (HoloTetSphere) from multi-view images.",
-    )
-    p.add_argument(
-        "dataset",
-        nargs="?",
-        metavar="DATASET",
-        help="NeRF-synthetic (transforms_*.json) or NeuS/IDR (cameras_sphere.npz) folder; "
-        "omitted: the built-in bob, synthesised into DIR/data",
-    )
+def build_parser():
+    p = cli.parser("holowarp.reconstruct",
+                   "Reconstruct ONE connected, simulation-ready tet mesh (HoloTetSphere) from multi-view images.")
+    p.add_argument("dataset", nargs="?", metavar="DATASET",
+                   help="NeRF-synthetic (transforms_*.json) or NeuS/IDR (cameras_sphere.npz) folder; "
+                        "omitted: the built-in bob, synthesised into DIR/data")  # fmt: skip
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--preset", choices=["fast", "paper"], default="fast", help="schedule and resolution (default: fast)")
-    p.add_argument("--device", default="cpu", help="cpu or cuda[:N] (default: cpu)")
+    cli.add_preset(p)
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoints/state.pt")
-    p.add_argument("--no-continuous-opacity", action="store_true", help="ablation: one free opacity per tet instead of the vertex field")
+    p.add_argument("--no-continuous-opacity", action="store_true",
+                   help="ablation: one free opacity per tet instead of the vertex field")
     p.add_argument("--uniform-biharmonic", action="store_true", help="ablation: bi-harmonic weight 1 everywhere")
     p.add_argument("--single-stage-hc", action="store_true", help="ablation: HC-Laplacian with lam_cond = 1 throughout")
-    p.add_argument("--res", type=int, default=None, metavar="PX", help="override the preset's image resolution")
-    p.add_argument("--scale-iters", type=float, default=None, metavar="F", help="multiply every iteration count of the preset by F")
-    p.add_argument("--edge-length", type=float, default=None, metavar="FAC", help="fTetWild edge length / bbox diagonal (resolution knob)")
+    p.add_argument("--res", type=int, default=None, metavar="PX", help="override the preset's image resolution (>= 16)")
+    p.add_argument("--scale-iters", type=float, default=None, metavar="F",
+                   help="multiply every iteration count of the preset by F (> 0)")
+    p.add_argument("--edge-length", type=float, default=None, metavar="FAC",
+                   help="fTetWild edge length / bbox diagonal, in (0, 1) (the resolution knob)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    cli.add_device(p)
+    cli.add_quiet(p)
     return p
 
 
-def main(argv=None) -> int:
-    from dataclasses import replace
-
-    args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+def config_from_args(args):
+    """The :class:`holowarp.config.ReconConfig` the arguments ask for."""
     from holowarp.config import preset
-    from holowarp.pipeline import ReconstructionError, reconstruct
 
     cfg = preset(args.preset).with_ablations(
         continuous_opacity=not args.no_continuous_opacity,
@@ -56,26 +50,27 @@ def main(argv=None) -> int:
     )
     if args.res is not None:
         if args.res < 16:
-            print(f"error: --res {args.res}: at least 16 pixels", file=sys.stderr)
-            return 2
+            cli.fail(f"--res {args.res}: at least 16 pixels")
         cfg = replace(cfg, resolution=args.res)
     if args.scale_iters is not None:
         if not args.scale_iters > 0:
-            print(f"error: --scale-iters {args.scale_iters}: must be > 0", file=sys.stderr)
-            return 2
+            cli.fail(f"--scale-iters {args.scale_iters}: must be > 0")
         cfg = cfg.scaled(args.scale_iters)
     if args.edge_length is not None:
         if not 0 < args.edge_length < 1:
-            print(f"error: --edge-length {args.edge_length}: must lie in (0, 1)", file=sys.stderr)
-            return 2
+            cli.fail(f"--edge-length {args.edge_length}: must lie in (0, 1)")
         cfg = replace(cfg, tet_init=replace(cfg.tet_init, edge_length_fac=args.edge_length))
     if args.seed is not None:
         cfg = replace(cfg, seed=args.seed)
-    try:
-        report = reconstruct(args.dataset, args.out, config=cfg, device=args.device, resume=args.resume, progress=not args.quiet)
-    except ReconstructionError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
+    return cfg
+
+
+def _run(args) -> int:
+    from holowarp.pipeline import reconstruct
+
+    cfg = config_from_args(args)
+    report = reconstruct(args.dataset, args.out, config=cfg, device=args.device, resume=args.resume,
+                         progress=not args.quiet)
     m = report.get("metrics") or {}
     print(
         f"wrote {args.out}: {report['tets_final']} tets, {report['components']} component(s), "
@@ -84,6 +79,10 @@ def main(argv=None) -> int:
         + (f", chamfer_l1 {m['chamfer_l1']:.4f}, volume_iou {m['volume_iou']:.3f}" if m else "")
     )
     return 0
+
+
+def main(argv=None) -> int:
+    return cli.run(_run, build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":

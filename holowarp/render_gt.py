@@ -26,9 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from holowarp.device import init_warp, resolve_device
 
-__all__ = ["GTRenderer", "Lighting", "corner_normals"]
+__all__ = ["GTRenderer", "Lighting", "corner_normals", "render_silhouettes"]
 
 
 def _unit(v):
@@ -136,76 +135,43 @@ class GTRenderer:
         supersample: int = 1,
         device: str = "cpu",
     ):
-        wp = init_warp()
         from holowarp.kernels import raycast as rk
+        from holowarp.ops.raycast import RayCaster
 
-        self._wp, self._rk = wp, rk
-        self.device = resolve_device(device)
         v = np.ascontiguousarray(vertices, dtype=np.float32)
         f = np.ascontiguousarray(faces, dtype=np.int32)
-        if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
-            raise ValueError(f"GTRenderer: vertices must be (V, 3) with V > 0, got {v.shape}")
-        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-            raise ValueError(f"GTRenderer: faces must be (F, 3) with F > 0, got {f.shape}")
-        if f.min() < 0 or f.max() >= len(v):
-            raise ValueError(f"GTRenderer: face indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]")
-        if not np.isfinite(v).all():
-            raise ValueError("GTRenderer: vertices contain NaN or infinity")
+        _check_geometry(v, f)
         if int(supersample) < 1:
             raise ValueError(f"GTRenderer: supersample must be >= 1, got {supersample}")
         self.vertices, self.faces = v, f
         self.supersample = int(supersample)
-        self.lighting = lighting or Lighting()
-        dev = self.device
-        self._points = wp.array(v, dtype=wp.vec3, device=dev)
-        self._indices = wp.array(f.ravel(), dtype=wp.int32, device=dev)
-        self._mesh = wp.Mesh(points=self._points, indices=self._indices)
-        self._faces = wp.array(f, dtype=wp.int32, device=dev)
+        self.lighting = lt = lighting or Lighting()
         self.smooth = bool(smooth_normals)
-        cn = corner_normals(v, f, crease_angle_deg=crease_angle_deg) if self.smooth else np.zeros((1, 3, 3), np.float32)
-        self._corner_normals = wp.array(cn, dtype=wp.vec3, device=dev)
-
-        dummy_v3 = np.zeros((1, 3), np.float32)
+        cn = corner_normals(v, f, crease_angle_deg=crease_angle_deg) if self.smooth else None
+        tex = fuv = uv = vc = None
         if texture is not None and uvs is not None and face_uvs is not None:
-            tex = np.ascontiguousarray(texture, dtype=np.float32)
-            if tex.ndim != 3 or tex.shape[2] != 3:
-                raise ValueError(f"GTRenderer: texture must be (H, W, 3), got {tex.shape}")
-            fuv = np.ascontiguousarray(face_uvs, dtype=np.int32)
-            if fuv.shape != f.shape:
-                raise ValueError(f"GTRenderer: face_uvs {fuv.shape} must match faces {f.shape}")
-            uv = np.ascontiguousarray(uvs, dtype=np.float32)
-            if fuv.min() < 0 or fuv.max() >= len(uv):
-                raise ValueError("GTRenderer: face_uvs index outside uvs")
+            tex, uv, fuv = _check_texture(texture, uvs, face_uvs, f)
             self.color_mode = int(rk.COLOR_TEXTURE)
-        else:
-            tex, fuv, uv = np.zeros((1, 1, 3), np.float32), np.zeros((1, 3), np.int32), np.zeros((1, 2), np.float32)
-            self.color_mode = int(rk.COLOR_ALBEDO)
-        if self.color_mode == int(rk.COLOR_ALBEDO) and vertex_colors is not None:
+        elif vertex_colors is not None:
             vc = np.ascontiguousarray(vertex_colors, dtype=np.float32)
             if vc.shape != v.shape:
                 raise ValueError(f"GTRenderer: vertex_colors {vc.shape} must match vertices {v.shape}")
             self.color_mode = int(rk.COLOR_VERTEX)
         else:
-            vc = dummy_v3
-        self._texture = wp.array(tex, dtype=wp.vec3, device=dev)
-        self._face_uvs = wp.array(fuv, dtype=wp.int32, device=dev)
-        self._uvs = wp.array(uv, dtype=wp.vec2, device=dev)
-        self._vertex_colors = wp.array(vc, dtype=wp.vec3, device=dev)
-        self.albedo = wp.vec3(*[float(x) for x in albedo])
-        lt = self.lighting
-        self._light_dirs = wp.array(np.asarray(lt.directions, np.float32).reshape(-1, 3), dtype=wp.vec3, device=dev)
-        self._light_rgb = wp.array(np.asarray(lt.colors, np.float32).reshape(-1, 3), dtype=wp.vec3, device=dev)
-        self._ambient = wp.vec3(*[float(x) for x in lt.ambient])
-        ext = float(np.linalg.norm(v.max(0) - v.min(0)))
-        self._scene_radius = max(ext, 1e-6)
+            self.color_mode = int(rk.COLOR_ALBEDO)
+        self._caster = RayCaster(v, f, corner_normals=cn, color_mode=self.color_mode, albedo=albedo,
+                                 vertex_colors=vc, texture=tex, uvs=uv, face_uvs=fuv, ambient=lt.ambient,
+                                 light_dirs=lt.directions, light_rgb=lt.colors, device=device)
+        self.device = self._caster.device
 
     @classmethod
     def from_obj(cls, obj, **kwargs) -> "GTRenderer":
-        """Renderer of an :class:`holowarp.data.obj.ObjMesh` (or an OBJ path), welded first."""
-        from holowarp.data.obj import ObjMesh, load_obj
+        """Renderer of a :class:`holowarp.surface_io.SurfaceMesh` (or a surface file path),
+        welded first."""
+        from holowarp.surface_io import SurfaceMesh, load_surface_mesh
 
-        if not isinstance(obj, ObjMesh):
-            obj = load_obj(obj)
+        if not isinstance(obj, SurfaceMesh):
+            obj = load_surface_mesh(obj)
         obj = obj.welded()
         return cls(
             obj.positions,
@@ -236,7 +202,6 @@ class GTRenderer:
 
     def render_async(self, viewmat, K, width: int, height: int, *, supersample: int | None = None) -> dict:
         """Launch one view and return the Warp output arrays (no host copy, no sync)."""
-        wp, rk = self._wp, self._rk
         viewmat = np.asarray(viewmat, dtype=np.float64)
         K = np.asarray(K, dtype=np.float64)
         if viewmat.shape != (4, 4) or K.shape != (3, 3):
@@ -244,49 +209,54 @@ class GTRenderer:
         width, height = int(width), int(height)
         if width < 1 or height < 1:
             raise ValueError(f"render: image size must be positive, got {width}x{height}")
-        R = viewmat[:3, :3]
-        if abs(abs(np.linalg.det(R)) - 1.0) > 1e-4:
+        if abs(abs(np.linalg.det(viewmat[:3, :3])) - 1.0) > 1e-4:
             raise ValueError("render: viewmat rotation is not orthonormal")
-        cam_pos = -R.T @ viewmat[:3, 3]
         ss = self.supersample if supersample is None else int(supersample)
-        dev = self.device
-        rgba = wp.empty((height, width), dtype=wp.vec4, device=dev)
-        normal = wp.empty((height, width), dtype=wp.vec3, device=dev)
-        depth = wp.empty((height, width), dtype=float, device=dev)
-        face = wp.empty((height, width), dtype=wp.int32, device=dev)
-        max_t = float(np.linalg.norm(cam_pos) + 4.0 * self._scene_radius + 1.0) * 4.0
-        wp.launch(
-            rk.raycast_kernel,
-            dim=(height, width),
-            inputs=[
-                self._mesh.id,
-                self._faces,
-                self._corner_normals,
-                int(self.smooth),
-                self.color_mode,
-                self.albedo,
-                self._vertex_colors,
-                self._face_uvs,
-                self._uvs,
-                self._texture,
-                self._light_dirs,
-                self._light_rgb,
-                self._ambient,
-                wp.vec3(*cam_pos.astype(np.float32)),
-                wp.mat33(*R.T.astype(np.float32).ravel()),
-                float(K[0, 0]),
-                float(K[1, 1]),
-                float(K[0, 2]),
-                float(K[1, 2]),
-                max(ss, 1),
-                max_t,
-            ],
-            outputs=[rgba, normal, depth, face],
-            device=dev,
-        )
-        return {"rgba": rgba, "normal": normal, "depth": depth, "face": face}
+        return self._caster.cast(viewmat, K, width, height, ss)
 
     def render_views(self, viewmats, Ks, width: int, height: int, *, supersample: int | None = None):
         """Render many views; yields ``(index, result dict)`` in order (one launch per view)."""
         for i in range(len(viewmats)):
             yield i, self.render(viewmats[i], Ks[i], width, height, supersample=supersample)
+
+
+def _check_geometry(v: np.ndarray, f: np.ndarray) -> None:
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise ValueError(f"GTRenderer: vertices must be (V, 3) with V > 0, got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        raise ValueError(f"GTRenderer: faces must be (F, 3) with F > 0, got {f.shape}")
+    if f.min() < 0 or f.max() >= len(v):
+        raise ValueError(f"GTRenderer: face indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]")
+    if not np.isfinite(v).all():
+        raise ValueError("GTRenderer: vertices contain NaN or infinity")
+
+
+def _check_texture(texture, uvs, face_uvs, faces):
+    tex = np.ascontiguousarray(texture, dtype=np.float32)
+    if tex.ndim != 3 or tex.shape[2] != 3:
+        raise ValueError(f"GTRenderer: texture must be (H, W, 3), got {tex.shape}")
+    fuv = np.ascontiguousarray(face_uvs, dtype=np.int32)
+    if fuv.shape != faces.shape:
+        raise ValueError(f"GTRenderer: face_uvs {fuv.shape} must match faces {faces.shape}")
+    uv = np.ascontiguousarray(uvs, dtype=np.float32)
+    if fuv.min() < 0 or fuv.max() >= len(uv):
+        raise ValueError("GTRenderer: face_uvs index outside uvs")
+    return tex, uv, fuv
+
+
+def render_silhouettes(vertices, faces, dataset, views, *, supersample: int | None = None,
+                       device: str = "cpu") -> np.ndarray:
+    """Silhouettes (len(views), H, W) float32 of a surface seen by ``dataset``'s cameras
+    ``views``.
+
+    ``supersample`` defaults to the one the dataset was synthesised with (so soft edges
+    compare like with like), else 2.
+    """
+    if supersample is None:
+        supersample = int((dataset.meta or {}).get("holowarp", {}).get("supersample", 2))
+    r = GTRenderer(vertices, faces, supersample=supersample, smooth_normals=False, device=device)
+    views = np.asarray(views, dtype=np.int64)
+    out = np.empty((len(views), dataset.height, dataset.width), np.float32)
+    for j, _r in r.render_views(dataset.viewmats[views], dataset.K[views], dataset.width, dataset.height):
+        out[j] = _r["mask"]
+    return out

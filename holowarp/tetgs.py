@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from holowarp.config import TopologyConfig
 from holowarp.tetmesh import TetMesh
 
 __all__ = ["TetGaussians", "tet_mean_radius"]
@@ -44,12 +45,13 @@ class TetGaussians:
 
     Args:
         mesh: the (positively oriented) tet mesh.
-        colors: (M, 3) initial colours in [0, 1].
-        phi: (V,) initial vertex field (continuous mode).
-        continuous_opacity: use the vertex field (True) or free per-tet opacities (False).
-        kappa: initial sharpness; s: fixed scale; kappa_clamp: range of s * kappa.
-        scale_factor: surfel scale = factor * mean centroid-to-vertex distance.
+        colors: (M, 3) initial colours in [0, 1] (grey if None).
+        phi: (V,) initial vertex field (``-config.phi_inside`` everywhere if None).
+        config: the :class:`holowarp.config.TopologyConfig` giving kappa's initial value and
+            clamp, s, the surfel scale factor and the free opacities' initial value.
+        free_opacity: start with free per-tet opacities instead of the vertex field.
         device: torch device.
+        seed: seeds the random initial surfel orientations.
 
     Attributes (torch tensors on ``device``):
         vertices [V, 3] float32 (a Parameter; only mesh blocks give it to an optimiser),
@@ -58,36 +60,23 @@ class TetGaussians:
         log_scales [M, 2].
     """
 
-    def __init__(
-        self,
-        mesh: TetMesh,
-        *,
-        colors=None,
-        phi=None,
-        continuous_opacity: bool = True,
-        kappa: float = 10.0,
-        s: float = 1.0,
-        kappa_clamp=(1.0, 50.0),
-        scale_factor: float = 0.65,
-        initial_opacity: float = 0.9,
-        device="cpu",
-        seed: int = 0,
-    ):
+    def __init__(self, mesh: TetMesh, *, colors=None, phi=None, config: TopologyConfig = TopologyConfig(),
+                 free_opacity: bool = False, device="cpu", seed: int = 0):
         dev = torch.device(device)
         P = torch.nn.Parameter
         M, V = mesh.num_tets, mesh.num_vertices
         self.device = dev
-        self.s = float(s)
-        self.kappa_clamp = (float(kappa_clamp[0]), float(kappa_clamp[1]))
-        self.scale_factor = float(scale_factor)
+        self.s = float(config.s)
+        self.kappa_clamp = (float(config.kappa_clamp[0]), float(config.kappa_clamp[1]))
+        self.scale_factor = float(config.scale_factor)
         self.vertices = P(torch.tensor(np.array(mesh.vertices), dtype=torch.float32, device=dev))
         self.tets = torch.tensor(np.array(mesh.tets), dtype=torch.int64, device=dev)
         if phi is None:
-            phi = np.full(V, -0.3)
+            phi = np.full(V, -config.phi_inside)
         self.phi = P(torch.as_tensor(np.asarray(phi), dtype=torch.float32, device=dev).clone())
-        self.kappa = P(torch.tensor(float(kappa), dtype=torch.float32, device=dev))
-        self.free_opacity = not continuous_opacity
-        self.opacity_logit = P(torch.full((M,), float(_logit(torch.tensor(initial_opacity))), device=dev))
+        self.kappa = P(torch.tensor(float(config.kappa_init), dtype=torch.float32, device=dev))
+        self.free_opacity = bool(free_opacity)
+        self.opacity_logit = P(torch.full((M,), float(_logit(torch.tensor(config.initial_opacity))), device=dev))
         if colors is None:
             colors = np.full((M, 3), 0.5)
         self.color_logit = P(_logit(torch.as_tensor(np.asarray(colors), dtype=torch.float32, device=dev)).clone())
@@ -196,6 +185,23 @@ class TetGaussians:
             self.quats = P(self.quats.data[keep_tets].clone())
             self.log_scales = P(self.log_scales.data[keep_tets].clone())
         return old_to_new.cpu().numpy()
+
+    def apply_cleanup(self, kept, mesh: TetMesh) -> None:
+        """Follow a cleanup (method.md §7) that kept input tets ``kept`` (K,) and produced
+        ``mesh`` (its tets in that order, possibly with two vertices swapped, unused vertices
+        removed in increasing id order). Surfels follow their tets; a swap keeps a tet's
+        centroid, so nothing moves.
+
+        Raises:
+            ValueError: ``mesh`` is not a cleanup of this model's mesh (other vertex set).
+        """
+        self.keep(kept)
+        if mesh.num_vertices != self.num_vertices or mesh.num_tets != self.num_tets:
+            raise ValueError(
+                f"cleanup result ({mesh.num_tets} tets, {mesh.num_vertices} vertices) does not match the surfel "
+                f"model after keeping its tets ({self.num_tets} tets, {self.num_vertices} vertices)"
+            )
+        self.tets = torch.tensor(np.array(mesh.tets), dtype=torch.int64, device=self.device)
 
     # ------------------------------------------------------------------ (de)serialisation
     _TENSORS = ("vertices", "tets", "phi", "kappa", "opacity_logit", "color_logit", "quats", "log_scales")

@@ -31,6 +31,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from holowarp.errors import InputError
+
 __all__ = [
     "TET_FACES",
     "TET_EDGES",
@@ -47,11 +49,7 @@ TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int6
 TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
 _EDGE_OPPOSITE = np.array([[2, 3], [1, 3], [1, 2], [0, 3], [0, 2], [0, 1]], dtype=np.int64)
 
-#: Minimum dihedral angle of the regular tetrahedron, degrees (arccos(1/3)).
-REGULAR_MIN_DIHEDRAL_DEG = math.degrees(math.acos(1.0 / 3.0))
-
-
-class TetMeshError(ValueError):
+class TetMeshError(InputError):
     """Invalid tetrahedral mesh data (shapes, indices, non-finite coordinates)."""
 
 

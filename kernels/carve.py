@@ -1,6 +1,7 @@
 """Visual-hull carving: the silhouette-consistency field on a regular grid.
 
-For every grid node p the field is ``min over views of mask_v(project_v(p))``, the mask
+For every grid node (:func:`carve_kernel`) or given point (:func:`carve_points_kernel`) p
+the field is ``min over views of mask_v(project_v(p))``, the mask
 sampled bilinearly at the projection (OpenCV camera, pixel centres at ``x + 0.5``). A node
 behind a camera gets 0; a node projecting outside an image gets 0 when
 ``outside_is_empty`` (every view sees the whole object, as in the synthetic protocol) and
@@ -15,7 +16,7 @@ from __future__ import annotations
 
 import warp as wp
 
-__all__ = ["carve_kernel", "sample_mask_bilinear"]
+__all__ = ["carve_kernel", "carve_points_kernel", "carve_value", "sample_mask_bilinear"]
 
 
 @wp.func
@@ -37,21 +38,19 @@ def sample_mask_bilinear(masks: wp.array3d(dtype=float), view: int, x: float, y:
     return top * (1.0 - ay) + bot * ay
 
 
-@wp.kernel
-def carve_kernel(
-    origin: wp.vec3,  # world position of node (0, 0, 0)
-    spacing: float,  # node spacing (cubic cells)
-    viewmats: wp.array(dtype=wp.mat44),  # [V] world-to-camera, OpenCV
-    Ks: wp.array(dtype=wp.mat33),  # [V]
-    masks: wp.array3d(dtype=float),  # [V, H, W] in [0, 1]
+@wp.func
+def carve_value(
+    p: wp.vec3,
+    viewmats: wp.array(dtype=wp.mat44),
+    Ks: wp.array(dtype=wp.mat33),
+    masks: wp.array3d(dtype=float),
     outside_is_empty: int,
-    field: wp.array3d(dtype=float),  # [NX, NY, NZ] min over views of the mask
 ):
-    i, j, k = wp.tid()
-    p = origin + wp.vec3(float(i), float(j), float(k)) * spacing
+    """(min over views of the bilinear mask at p's projection, number of views that see p)."""
     h = float(masks.shape[1])
     w = float(masks.shape[2])
     val = float(1.0)
+    seen = int(0)
     for v in range(viewmats.shape[0]):
         M = viewmats[v]
         pc = wp.vec3(
@@ -70,7 +69,40 @@ def carve_kernel(
                 val = 0.0
                 break
         else:
+            seen += 1
             val = wp.min(val, sample_mask_bilinear(masks, v, x, y))
             if val <= 0.0:
                 break
+    return val, seen
+
+
+@wp.kernel
+def carve_kernel(
+    origin: wp.vec3,  # world position of node (0, 0, 0)
+    spacing: float,  # node spacing (cubic cells)
+    viewmats: wp.array(dtype=wp.mat44),  # [V] world-to-camera, OpenCV
+    Ks: wp.array(dtype=wp.mat33),  # [V]
+    masks: wp.array3d(dtype=float),  # [V, H, W] in [0, 1]
+    outside_is_empty: int,
+    field: wp.array3d(dtype=float),  # [NX, NY, NZ] min over views of the mask
+):
+    i, j, k = wp.tid()
+    p = origin + wp.vec3(float(i), float(j), float(k)) * spacing
+    val, seen = carve_value(p, viewmats, Ks, masks, outside_is_empty)
     field[i, j, k] = val
+
+
+@wp.kernel
+def carve_points_kernel(
+    points: wp.array(dtype=wp.vec3),  # [P] world positions
+    viewmats: wp.array(dtype=wp.mat44),  # [V] world-to-camera, OpenCV
+    Ks: wp.array(dtype=wp.mat33),  # [V]
+    masks: wp.array3d(dtype=float),  # [V, H, W] in [0, 1]
+    outside_is_empty: int,
+    field: wp.array(dtype=float),  # [P] min over views of the mask
+    seen: wp.array(dtype=wp.int32),  # [P] views in front of which the point projects in frame
+):
+    i = wp.tid()
+    val, n = carve_value(points[i], viewmats, Ks, masks, outside_is_empty)
+    field[i] = val
+    seen[i] = n

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from holowarp.primitives import box_tetmesh
-from holowarp.stages.cleanup import cleanup, repair_manifold
+from holowarp.manifold import repair_manifold
+from holowarp.stages.cleanup import cleanup
 from holowarp.config import TetInitConfig
 from holowarp.stages.tet_init import HullError, scaled_hull
 from holowarp.tetmesh import TetMesh

@@ -1,4 +1,4 @@
-"""Stage 0 (holowarp.gs2d) and the Gaussian model (holowarp.gaussians).
+"""Stage 0 (holowarp.stages.gaussian_init, python -m holowarp.gs2d) and the Gaussian model (holowarp.gaussians).
 
 The training tests use a tiny in-memory dataset whose images are rendered by the surfel
 rasteriser itself from a known set of surfels on a sphere, so the trainer must be able to
@@ -25,7 +25,9 @@ from holowarp.gaussians import (
     quats_facing,
     write_gaussians_ply,
 )
-from holowarp.gs2d import GS2DConfig, init_points_from_masks, main, train_gs2d
+from holowarp.config import Stage0Config, preset
+from holowarp.gs2d import main
+from holowarp.stages.gaussian_init import init_surfels, train_gs2d
 from holowarp.ops import rasterize_surfels
 
 LRS = {"means": 1e-3, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 0.05, "sh_dc": 2.5e-3}
@@ -152,28 +154,28 @@ def tiny_dataset(n_views=8, size=32, n_surfels=120, seed=0):
 
 
 def tiny_config(iters, **kw):
-    base = dict(init_points=300, init_candidates=20_000, densify_from=10, densify_until=iters, densify_interval=10,
-                opacity_reset_interval=10_000, normal_from=iters // 2, checkpoint_every=10)
+    """Stage 0 with its schedule written for exactly ``iters`` iterations."""
+    base = dict(reference_iters=max(iters, 1), init_points=300, init_candidates=20_000, densify_from=10,
+                densify_until=max(iters, 1), densify_interval=10, opacity_reset_interval=10_000,
+                normal_from=max(iters // 2, 1), checkpoint_every=10)
     base.update(kw)  # fmt: skip
-    return GS2DConfig(iters=iters, **base)
+    return Stage0Config(**base)
 
 
-def test_init_points_lie_inside_every_training_mask():
+def test_initial_surfels_lie_inside_every_training_mask_that_sees_them():
+    from oracles import bilinear_masks
+
     ds = tiny_dataset()
-    pts, cols, r = init_points_from_masks(ds, 200, candidates=20_000)
-    assert len(pts) == 200 and cols.shape == (200, 3)
-    assert float(np.abs(pts).max()) <= r + 1e-9
-    for i in ds.train_idx:
-        V, K = ds.viewmats[i], ds.K[i]
-        pc = pts @ V[:3, :3].T + V[:3, 3]
-        uv = np.floor((pc[:, :2] / pc[:, 2:]) @ K[:2, :2].T + K[:2, 2]).astype(int)
-        seen = (uv >= 0).all(1) & (uv[:, 0] < ds.width) & (uv[:, 1] < ds.height)  # outside: not carved
-        assert (ds.masks[i][uv[seen, 1], uv[seen, 0]] >= 0.5).all()
+    pts, cols = init_surfels(ds, tiny_config(1, init_points=200))
+    assert len(pts) == 200 and cols.shape == (200, 3) and np.isfinite(cols).all()
+    vals, seen = bilinear_masks(pts, ds, ds.train_idx)
+    assert seen.any(axis=1).all()
+    assert (np.where(seen, vals, 1.0) >= 0.5 - 1e-5).all()  # every view that sees a surfel has it inside
 
 
 def test_training_lowers_the_loss_and_writes_ply_and_report(tmp_path):
     ds = tiny_dataset()
-    res = train_gs2d(ds, tiny_config(60), tmp_path, progress=False)
+    res = train_gs2d(ds, tiny_config(60), tmp_path, iters=60, progress=False)
     report = json.loads((tmp_path / "report.json").read_text())
     for key in ("psnr_test", "ssim_test", "gaussians", "iters", "seconds"):
         assert key in report
@@ -181,20 +183,19 @@ def test_training_lowers_the_loss_and_writes_ply_and_report(tmp_path):
     g = load_gaussians_ply(tmp_path / "gaussians.ply")
     assert len(g["means"]) == report["gaussians"]
     # Before training (the visual-hull initialisation) versus after.
-    init = train_gs2d(ds, tiny_config(0), tmp_path / "init", progress=False)
+    init = train_gs2d(ds, tiny_config(0), tmp_path / "init", iters=0, progress=False)
     assert report["psnr_test"] > init["psnr_test"] + 3.0, (report["psnr_test"], init["psnr_test"])
     assert (tmp_path / "test_preview.png").is_file()
 
 
 def test_resumed_training_reproduces_the_uninterrupted_run(tmp_path, monkeypatch):
+    import holowarp.stages.gaussian_init as gi
+
     ds = tiny_dataset()
     cfg = tiny_config(30)
-    full = train_gs2d(ds, cfg, tmp_path / "full", progress=False)
-
-    import holowarp.gs2d as gs2d_mod
-
+    full = train_gs2d(ds, cfg, tmp_path / "full", iters=30, progress=False)
     calls = {"n": 0}
-    real_loss = gs2d_mod.l1_dssim_loss
+    real_loss = gi.l1_dssim_loss
 
     def interrupted(*a, **kw):
         calls["n"] += 1
@@ -202,33 +203,56 @@ def test_resumed_training_reproduces_the_uninterrupted_run(tmp_path, monkeypatch
             raise KeyboardInterrupt
         return real_loss(*a, **kw)
 
-    monkeypatch.setattr(gs2d_mod, "l1_dssim_loss", interrupted)
+    monkeypatch.setattr(gi, "l1_dssim_loss", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        train_gs2d(ds, cfg, tmp_path / "part", progress=False)
+        train_gs2d(ds, cfg, tmp_path / "part", iters=30, progress=False)
     assert (tmp_path / "part" / "checkpoint.pt").is_file()
     assert not (tmp_path / "part" / "report.json").exists()
-    monkeypatch.setattr(gs2d_mod, "l1_dssim_loss", real_loss)
-    resumed = train_gs2d(ds, cfg, tmp_path / "part", resume=True, progress=False)
+    monkeypatch.setattr(gi, "l1_dssim_loss", real_loss)
+    resumed = train_gs2d(ds, cfg, tmp_path / "part", iters=30, resume=True, progress=False)
     assert resumed["gaussians"] == full["gaussians"]
     for name in ("means", "log_scales", "opacity_logits", "sh_dc"):
         assert torch.allclose(resumed["model"].params[name], full["model"].params[name], atol=1e-5), name
 
 
-def test_cli_trains_and_reports_bad_datasets_clearly(tmp_path, capsys):
-    assert main([str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
-    assert "nope" in capsys.readouterr().err
-    assert main([str(tmp_path), "--out", str(tmp_path / "o"), "--iters", "-3"]) == 2
+def test_a_garbage_checkpoint_is_refused_with_a_clear_error(tmp_path):
+    from holowarp.stages.gaussian_init import CheckpointError
+
+    (tmp_path / "checkpoint.pt").write_bytes(b"not a torch file")
+    with pytest.raises(CheckpointError, match="unreadable stage-0 checkpoint"):
+        train_gs2d(tiny_dataset(), tiny_config(5), tmp_path, iters=5, resume=True, progress=False)
+
+
+def test_cli_trains_a_dataset_folder_and_reports_bad_requests_clearly(tmp_path, capsys):
+    from holowarp.data.loaders import write_nerf_synthetic
+
+    data = write_nerf_synthetic(tiny_dataset(n_views=10), tmp_path / "data")
+    out = tmp_path / "o"
+    assert main([str(data), "--out", str(out), "--iters", "12", "--res", "32", "--quiet"]) == 0
+    assert "psnr_test=" in capsys.readouterr().out
+    report = json.loads((out / "report.json").read_text())
+    assert report["iters"] == 12 and report["gaussians"] > 0
+    assert len(load_gaussians_ply(out / "gaussians.ply")["means"]) == report["gaussians"]
+    assert main([str(tmp_path / "nope"), "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err
+    assert "nope" in err and err.count("\n") == 1
+    assert main([str(data), "--out", str(tmp_path / "o3"), "--iters", "-3"]) == 2
     assert "--iters" in capsys.readouterr().err
 
 
-def test_config_presets_keep_the_order_of_events():
+def test_stage0_schedules_keep_the_order_of_events():
+    cfg = Stage0Config()
     for n in (100, 800, 3000, 10_000):
-        c = GS2DConfig.for_iterations(n)
-        assert c.iters == n
-        assert c.densify_from < c.densify_until <= n
-        assert c.opacity_reset_interval % c.densify_interval == 0
-    p = GS2DConfig.paper()
-    assert p.iters == 10_000 and p.resolution == 512
+        s = cfg.schedule(n)
+        assert s.iters == n
+        assert 1 <= s.densify_from < s.densify_until <= n
+        assert s.normal_from < n and s.dist_from < n
+        assert s.opacity_reset_interval % s.densify_interval == 0
+    # The paper's preset runs 10k stage-0 iterations at 512^2 (method.md §3, §8), fast 800 at 128^2.
+    assert preset("paper").schedule.stage0_iters == 10_000 and preset("paper").resolution == 512
+    fast = preset("fast")
+    assert fast.schedule.stage0_iters == 800 and fast.resolution == 128
+    assert fast.stage0.schedule(800).densify_until == round(1800 * 800 / 3000)
 
 
 def test_quats_facing_turns_z_onto_each_normal(rng):

@@ -8,7 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from holowarp.camera import intrinsics_from_fov, look_at, pixel_rays
+from oracles import pixel_rays
+
+from holowarp.camera import intrinsics_from_fov, look_at
 from holowarp.render_gt import GTRenderer, Lighting, corner_normals
 
 RES = 64

@@ -13,8 +13,8 @@ import pytest
 from holowarp.camera import FOV_DEG, project_points
 from holowarp.data import Dataset, DatasetError, load_dataset
 from holowarp.data.loaders import decompose_projection, load_neus, write_nerf_synthetic
-from holowarp.data.obj import load_obj, weld
-from holowarp.data.synth import SynthError, protocol_cameras, synthesize
+from holowarp.surface_io import SurfaceError, load_obj, weld
+from holowarp.synthesis import SynthError, protocol_cameras, synthesize
 
 VIEWS, RES = 12, 24
 BOX = (0.6, 1.2, 0.3)  # Y-up model, tallest along y
@@ -299,7 +299,7 @@ def test_unknown_layout_and_existing_output_give_clear_errors(synth_box, tmp_pat
         load_dataset(tmp_path)
     with pytest.raises(SynthError, match="--resume"):
         synthesize(obj, out, views=VIEWS, res=RES, progress=False)
-    with pytest.raises(SynthError, match="no such OBJ"):
+    with pytest.raises(SurfaceError, match="missing.obj: no such file"):
         synthesize(tmp_path / "missing.obj", tmp_path / "x", views=2, res=16, progress=False)
 
 

@@ -15,11 +15,10 @@ from holowarp.losses import (
     l1_dssim_loss,
     mask_loss,
     normal_consistency_loss,
-    psnr,
     ranked_loss,
     ranked_normal_loss,
-    ssim,
 )
+from holowarp.metrics.image import psnr, ssim
 
 
 @pytest.mark.parametrize("shape", [(40, 36, 3), (330, 24, 2)])  # banded-matmul and convolution paths

@@ -10,6 +10,7 @@ import pytest
 import trimesh
 
 from holowarp import MeshIOError, TetMesh, read_tetmesh, write_surface, write_tetmesh
+from holowarp.surface_io import SurfaceError
 from holowarp.convert import main as convert_main
 from holowarp.primitives import box_tetmesh
 
@@ -68,10 +69,14 @@ def test_missing_file_error_names_the_file(tmp_path):
 
 
 def test_unknown_extension_and_surface_input_are_refused(tmp_path, mesh):
-    p = tmp_path / "m.stl"
-    p.write_text("solid x\nendsolid x\n")
+    p = tmp_path / "m.xyz"
+    p.write_text("0 0 0\n")
     with pytest.raises(MeshIOError, match="unknown tet-mesh extension"):
         read_tetmesh(p)
+    st = tmp_path / "m.stl"
+    st.write_text("solid x\nendsolid x\n")
+    with pytest.raises(MeshIOError, match="holds a surface, not a tet mesh"):
+        read_tetmesh(st)
     s = tmp_path / "m.obj"
     write_surface(s, mesh)
     with pytest.raises(MeshIOError, match="holds a surface, not a tet mesh"):
@@ -174,7 +179,7 @@ def test_failed_write_leaves_previous_file_intact(tmp_path, mesh, ext, monkeypat
 def test_convert_cli_reports_errors_without_traceback(tmp_path, capsys):
     rc = convert_main([str(tmp_path / "missing.msh"), str(tmp_path / "out.vtu")])
     err = capsys.readouterr().err
-    assert rc == 1 and "no such file" in err and "Traceback" not in err
+    assert rc == 2 and "no such file" in err and "Traceback" not in err and err.count("\n") == 1
     assert not (tmp_path / "out.vtu").exists()
 
 

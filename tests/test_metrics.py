@@ -10,19 +10,11 @@ import math
 import numpy as np
 import pytest
 
-from holowarp.metrics import (
-    METRIC_KEYS,
-    chamfer_metrics,
-    edge_metrics,
-    edge_sample_mask,
-    evaluate_mesh,
-    inside_mask,
-    mask_psnr,
-    normalize_to_unit_cube,
-    psnr,
-    sample_surface,
-    unit_cube_transform,
-)
+from holowarp.frame import FrameError, unit_cube_transform
+from holowarp.metrics import METRIC_KEYS, evaluate_mesh
+from holowarp.metrics.image import mask_psnr, psnr
+from holowarp.metrics.surface import chamfer_metrics, edge_metrics, edge_sample_mask, sample_surface
+from holowarp.metrics.volume import inside_mask
 
 N = 50_000
 
@@ -197,19 +189,23 @@ def test_winding_inside_test_matches_the_analytic_ball_even_with_holes(rng):
 
 def test_unit_cube_normalisation_centres_and_scales_by_the_reference():
     ref = np.array([[1.0, 2.0, 3.0], [3.0, 3.0, 4.0]])
-    out = normalize_to_unit_cube(ref, ref)
-    np.testing.assert_allclose(out, [[-0.5, -0.25, -0.25], [0.5, 0.25, 0.25]])
-    np.testing.assert_allclose(normalize_to_unit_cube([[2.0, 2.5, 3.5]], ref), [[0, 0, 0]])
+    s, t = unit_cube_transform(ref)
+    np.testing.assert_allclose(ref * s + t, [[-0.5, -0.25, -0.25], [0.5, 0.25, 0.25]])
+    np.testing.assert_allclose(np.array([[2.0, 2.5, 3.5]]) * s + t, [[0, 0, 0]])
+    with pytest.raises(FrameError, match="zero-size"):
+        unit_cube_transform(np.ones((4, 3)))
+    with pytest.raises(FrameError, match="non-finite vertex"):
+        unit_cube_transform([[0.0, 0.0, 0.0], [np.nan, 1.0, 1.0]])
 
 
 def test_evaluate_command_writes_exactly_the_contract_keys(tmp_path, capsys):
     from holowarp import write_tetmesh
-    from holowarp.data.obj import write_obj
     from holowarp.evaluate import main
+    from holowarp.surface_io import write_surface
     from holowarp.primitives import box_tetmesh
 
     write_tetmesh(tmp_path / "pred.vtu", box_tetmesh((3, 3, 3), size=(0.8, 0.8, 0.8), origin=(-0.4, -0.4, -0.4)))
-    write_obj(tmp_path / "gt.obj", *_cube(1.0))
+    write_surface(tmp_path / "gt.obj", _cube(1.0))
     out = tmp_path / "m.json"
     rc = main([str(tmp_path / "pred.vtu"), "--gt", str(tmp_path / "gt.obj"), "--json", str(out), "--samples", "5000"])
     assert rc == 0
@@ -224,11 +220,11 @@ def test_evaluate_command_writes_exactly_the_contract_keys(tmp_path, capsys):
 
 def test_evaluate_with_dataset_adds_silhouette_psnr(tmp_path):
     from holowarp.data import load_dataset
-    from holowarp.data.obj import write_obj
-    from holowarp.data.synth import synthesize
+    from holowarp.surface_io import write_surface
+    from holowarp.synthesis import synthesize
     from holowarp.primitives import box_tetmesh
 
-    write_obj(tmp_path / "cube.obj", *_cube(2.0))
+    write_surface(tmp_path / "cube.obj", _cube(2.0))
     synthesize(tmp_path / "cube.obj", tmp_path / "ds", views=20, res=32, up_axis="z", progress=False)
     ds = load_dataset(tmp_path / "ds")
     exact = box_tetmesh((2, 2, 2), size=(1, 1, 1), origin=(-0.5, -0.5, -0.5))

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+import holowarp.pipeline as pipeline
 from holowarp.config import preset
 from holowarp.pipeline import ReconstructionError, reconstruct
 from holowarp.reconstruct import main as cli_main
@@ -20,7 +21,7 @@ RES = 40
 @pytest.fixture(scope="module")
 def torus_dataset(tmp_path_factory):
     """40 Fibonacci views (36 train) of a solid torus at 40x40, written by the synthesiser."""
-    from holowarp.data.synth import synthesize
+    from holowarp.synthesis import synthesize
 
     root = tmp_path_factory.mktemp("torus")
     t = trimesh.creation.torus(major_radius=0.3, minor_radius=0.12, major_sections=48, minor_sections=24)
@@ -36,12 +37,17 @@ def tiny_config(**changes):
     return replace(cfg, **changes)
 
 
-def test_tiny_reconstruction_is_one_manifold_genus_one_inversion_free_mesh(torus_dataset, tmp_path):
+@pytest.fixture(scope="module")
+def tiny_run(torus_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "run"
+    return out, reconstruct(torus_dataset, out, config=tiny_config(), progress=False)
+
+
+def test_tiny_reconstruction_is_one_manifold_genus_one_inversion_free_mesh(tiny_run):
     from holowarp import read_tetmesh
     from holowarp.gaussians import load_gaussians_ply
 
-    out = tmp_path / "run"
-    report = reconstruct(torus_dataset, out, config=tiny_config(), progress=False)
+    out, report = tiny_run
     assert report["components"] == 1
     assert report["manifold"] is True
     assert report["genus"] == 1
@@ -53,20 +59,45 @@ def test_tiny_reconstruction_is_one_manifold_genus_one_inversion_free_mesh(torus
     saved = json.loads((out / "report.json").read_text())
     for key in ("preset", "device", "seconds_total", "stages", "tets_initial", "tets_final", "components",
                 "manifold", "genus", "inverted_before_cleanup", "flipped", "dropped", "psnr_test",
-                "ssim_test", "peak_rss_mb", "metrics"):
+                "ssim_test", "peak_rss_mb", "metrics", "prunes", "geometry_blocks", "outputs", "previews"):
         assert key in saved, key
     assert saved["metrics"]["volume_iou"] > 0.5
     assert saved["psnr_test"] > 15.0
-    for stage in ("stage0", "tet_init", "topology", "gaussian", "geometry", "cleanup"):
-        assert saved["stages"][stage]["seconds"] > 0
     assert (out / "scene.usda").is_file() and (out / "surface.obj").is_file()
     assert {p.name for p in (out / "previews").iterdir()} >= {"cutaway_components.png", "losses.png"}
 
 
-def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkeypatch):
-    import holowarp.stages.geometry as geometry
-    import holowarp.stages.topology as topology
+def test_report_accounts_for_every_scheduled_event(tiny_run):
+    out, report = tiny_run
+    sch = tiny_config().schedule
+    st = report["stages"]
+    assert st["stage0"]["iterations"] == sch.stage0_iters
+    assert st["topology"]["iterations"] == sch.topology_until
+    assert st["gaussian"]["iterations"] == sch.main_iters - sch.topology_until
+    assert st["geometry"]["iterations"] == sch.total_mesh_iters
+    assert [p["iteration"] for p in report["prunes"]] == list(sch.prune_at)
+    assert [b["at"] for b in report["geometry_blocks"]] == list(sch.mesh_blocks_at)
+    # Tet counts only fall through the prunes, and cleanup starts from the last one.
+    sizes = [report["tets_initial"]] + [p["tets_after"] for p in report["prunes"]]
+    assert sizes == sorted(sizes, reverse=True)
+    assert report["cleanup"]["tets_before"] == report["prunes"][-1]["tets_after"]
 
+
+def test_loss_history_streams_one_line_per_step_and_stays_out_of_the_checkpoint(tiny_run):
+    import torch
+
+    out, _ = tiny_run
+    sch = tiny_config().schedule
+    lines = [json.loads(x) for x in (out / "history.jsonl").read_text().splitlines()]
+    stages = [r["stage"] for r in lines]
+    assert stages.count("topology") == sch.topology_until
+    assert stages.count("gaussian") == sch.main_iters - sch.topology_until
+    assert stages.count("geometry") == sch.total_mesh_iters
+    ck = torch.load(out / "checkpoints" / "state.pt", weights_only=False)
+    assert "history" not in ck["state"] and ck["state"]["history_lines"] == len(lines)
+
+
+def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkeypatch):
     cfg = tiny_config()
     cfg = replace(cfg, schedule=replace(cfg.schedule, stage0_iters=40), checkpoint_every=25)
     base = tmp_path / "base"
@@ -76,7 +107,7 @@ def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkey
     def stop(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(topology, "gaussian_step", stop)
+    monkeypatch.setattr(pipeline, "gaussian_step", stop)
     with pytest.raises(KeyboardInterrupt):
         reconstruct(torus_dataset, base, config=cfg, progress=False)
     monkeypatch.undo()
@@ -86,7 +117,7 @@ def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkey
     ra = reconstruct(torus_dataset, a, config=cfg, resume=True, progress=False)
 
     # b is killed twice: in the topology phase, and in the middle of a geometry block.
-    real_step, calls = topology.gaussian_step, {"n": 0}
+    real_step, calls = pipeline.gaussian_step, {"n": 0}
 
     def flaky_step(*args, **kwargs):
         calls["n"] += 1
@@ -94,19 +125,18 @@ def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkey
             raise KeyboardInterrupt
         return real_step(*args, **kwargs)
 
-    monkeypatch.setattr(topology, "gaussian_step", flaky_step)
+    monkeypatch.setattr(pipeline, "gaussian_step", flaky_step)
     with pytest.raises(KeyboardInterrupt):
         reconstruct(torus_dataset, b, config=cfg, resume=True, progress=False)
     monkeypatch.undo()
-    real_block = geometry.run_geometry_block
+    real_block = pipeline.run_geometry_block
 
     def flaky_block(*args, **kwargs):
         kwargs["checkpoint_every"] = 7
-        ckpt = kwargs["checkpoint"]
-        seen = {"n": 0}
+        ckpt, seen = kwargs["checkpoint"], {"n": 0}
 
-        def ckpt_then_die(step, opt_state):
-            ckpt(step, opt_state)
+        def ckpt_then_die(resume):
+            ckpt(resume)
             seen["n"] += 1
             if seen["n"] == 2:
                 raise KeyboardInterrupt
@@ -114,7 +144,7 @@ def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkey
         kwargs["checkpoint"] = ckpt_then_die
         return real_block(*args, **kwargs)
 
-    monkeypatch.setattr(geometry, "run_geometry_block", flaky_block)
+    monkeypatch.setattr(pipeline, "run_geometry_block", flaky_block)
     with pytest.raises(KeyboardInterrupt):
         reconstruct(torus_dataset, b, config=cfg, resume=True, progress=False)
     monkeypatch.undo()
@@ -127,25 +157,40 @@ def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkey
     np.testing.assert_allclose(ma.vertices, mb.vertices, atol=1e-6)
     assert ra["psnr_test"] == pytest.approx(rb["psnr_test"], abs=1e-3)
     assert ra["prunes"] == rb["prunes"]
+    # The repeated steps are not logged twice.
+    assert len((a / "history.jsonl").read_text().splitlines()) == len((b / "history.jsonl").read_text().splitlines())
+
+    # A finished run is not overwritten without --resume; a resume with other settings names
+    # them; neither touches the outputs.
+    from holowarp.runstate import CheckpointError
+
+    before = (b / "report.json").read_bytes()
+    with pytest.raises(CheckpointError, match="pass --resume"):
+        reconstruct(torus_dataset, b, config=cfg, progress=False)
+    with pytest.raises(CheckpointError, match="different settings.*topology.prune_alpha"):
+        reconstruct(torus_dataset, b, config=replace(cfg, topology=replace(cfg.topology, prune_alpha=0.2)),
+                    resume=True, progress=False)
+    assert (b / "report.json").read_bytes() == before
 
 
 def test_bad_requests_fail_before_any_work(torus_dataset, tmp_path, capsys):
+    import torch
+
     from holowarp.data import load_dataset
-    from holowarp.data.loaders import write_nerf_synthetic
-    from holowarp.pipeline import preflight
+    from holowarp.preflight import preflight
 
     # Unreadable dataset.
-    assert cli_main([str(tmp_path / "nope"), "--out", str(tmp_path / "o1"), "--quiet"]) == 1
+    assert cli_main([str(tmp_path / "nope"), "--out", str(tmp_path / "o1"), "--quiet"]) == 2
     assert "no such folder" in capsys.readouterr().err
     empty = tmp_path / "empty"
     empty.mkdir()
-    assert cli_main([str(empty), "--out", str(tmp_path / "o2"), "--quiet"]) == 1
-    assert "cannot read the dataset" in capsys.readouterr().err
+    assert cli_main([str(empty), "--out", str(tmp_path / "o2"), "--quiet"]) == 2
+    assert "unknown dataset layout" in capsys.readouterr().err
     # CUDA without a GPU (this machine has none; on a GPU machine the check is moot).
     import warp as wp
 
     if not wp.is_cuda_available():
-        assert cli_main([str(torus_dataset), "--out", str(tmp_path / "o3"), "--device", "cuda", "--quiet"]) == 1
+        assert cli_main([str(torus_dataset), "--out", str(tmp_path / "o3"), "--device", "cuda", "--quiet"]) == 2
         assert "no CUDA GPU" in capsys.readouterr().err
     ds = load_dataset(torus_dataset)
     with pytest.raises(ReconstructionError, match="at least 8 training views"):
@@ -162,12 +207,13 @@ def test_bad_requests_fail_before_any_work(torus_dataset, tmp_path, capsys):
     shuffled = replace(ds, viewmats=ds.viewmats[rng.permutation(ds.num_views)])
     with pytest.raises(ReconstructionError, match="visual hull degenerates"):
         preflight(shuffled)
-    # An output folder that already holds a run needs --resume.
+    # An output folder that already holds a run needs --resume; a foreign checkpoint is refused.
     out = tmp_path / "o4"
     (out / "checkpoints").mkdir(parents=True)
-    write_nerf_synthetic  # noqa: B018  (imported to show the writer exists for users)
-    import torch
-
     torch.save({"config": {}, "state": {}}, out / "checkpoints" / "state.pt")
-    with pytest.raises(ReconstructionError, match="pass --resume"):
-        reconstruct(torus_dataset, out, config=tiny_config(), progress=False)
+    assert cli_main([str(torus_dataset), "--out", str(out), "--quiet"]) == 2
+    assert "checkpoint layout" in capsys.readouterr().err
+    # Arguments out of range never start the run.
+    assert cli_main([str(torus_dataset), "--out", str(tmp_path / "o5"), "--res", "8", "--quiet"]) == 2
+    assert "--res 8" in capsys.readouterr().err
+    assert not (tmp_path / "o5").exists()

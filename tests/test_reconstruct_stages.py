@@ -21,7 +21,8 @@ from holowarp.stages.geometry import (
     signed_volumes_t,
 )
 from holowarp.stages.tet_init import scaled_hull
-from holowarp.stages.topology import init_phi, prune, sample_masks
+from holowarp.carve import hull_field, inside_hull
+from holowarp.stages.topology import init_phi, prune
 from holowarp.tetgs import TetGaussians
 from holowarp.tetmesh import tetrahedralize_surface
 
@@ -32,7 +33,7 @@ RADIUS = 0.35
 def sphere_scene():
     """16 views (12 train, 4 test) of a sphere of radius 0.35 at 40x40, rendered with the
     ground-truth renderer, and a coarse tet mesh of its 1.1-scaled convex hull."""
-    from holowarp.data.synth import protocol_cameras
+    from holowarp.synthesis import protocol_cameras
     from holowarp.render_gt import GTRenderer
 
     s = trimesh.creation.icosphere(subdivisions=4, radius=RADIUS)
@@ -73,6 +74,99 @@ def test_fast_preset_scales_every_count_by_one_factor_and_keeps_the_order():
         preset("slow")
 
 
+def test_schedule_events_come_in_order_and_validation_names_the_broken_rule():
+    from dataclasses import replace
+
+    from holowarp.config import GaussianStep, MeshBlock, Prune, Schedule
+
+    sch = Schedule(stage0_iters=5, main_iters=12, topology_until=4, prune_at=(4, 8), mesh_blocks_at=(8,),
+                   mesh_block_iters=3)
+    sch.validate()
+    evs = list(sch.events())
+    assert [type(e) for e in evs].count(GaussianStep) == 12
+    assert evs[4] == Prune(4, first=True) and evs[5] == GaussianStep(4, "gaussian")
+    i = evs.index(Prune(8, first=False))
+    assert evs[i + 1] == MeshBlock(8, index=0) and evs[i + 2] == GaussianStep(8, "gaussian")
+    assert all(e.phase == "topology" for e in evs[:4])
+    assert list(sch.events(start=9))[0] == GaussianStep(9, "gaussian")
+    assert sch.total_mesh_iters == 3
+    for bad, msg in [
+        (replace(sch, topology_until=0), "topology_until"),
+        (replace(sch, prune_at=(5, 8)), "first prune must end the topology phase"),
+        (replace(sch, prune_at=(4, 8), mesh_blocks_at=(6,)), "right after a prune"),
+        (replace(sch, prune_at=(4, 8, 13)), "beyond main_iters"),
+        (replace(sch, prune_at=(8, 4), topology_until=8), "increasing"),
+    ]:
+        with pytest.raises(ValueError, match=msg):
+            bad.validate()
+
+
+def test_first_prune_makes_scales_learnable_and_opacities_free_from_the_field():
+    from holowarp.stages.topology import GaussianOptimizers, after_first_prune, prune
+
+    mesh = box_tetmesh((3, 3, 3))
+    phi = np.linalg.norm(mesh.vertices - 0.5, axis=1) - 0.45  # a ball: corner tets transparent
+    model = TetGaussians(mesh, phi=phi, config=TopologyConfig())
+    with torch.no_grad():
+        model.log_scales.data += 1.0  # stage-0-like scales that the re-initialisation must replace
+    prune(model, TopologyConfig())
+    field = model.field_opacities().detach().clone()
+    after_first_prune(model)
+    assert model.free_opacity
+    torch.testing.assert_close(model.opacities().detach(), field, rtol=1e-5, atol=1e-6)
+    from holowarp.tetgs import tet_mean_radius
+
+    expect = torch.log(0.65 * tet_mean_radius(model.vertices.detach(), model.tets))
+    torch.testing.assert_close(model.log_scales.detach(), expect[:, None].repeat(1, 2))
+    opts = GaussianOptimizers(model, TopologyConfig(), learn_scales=True)
+    names = {g["name"] for g in opts.main.param_groups}
+    assert names == {"color", "rotation", "opacity", "scale"} and opts.kappa is None
+
+
+def test_kappa_stays_inside_its_clamp_whatever_the_gradient(sphere_scene):
+    from holowarp.stages.topology import GaussianOptimizers, ViewTensors, gaussian_step, init_model
+
+    ds, mesh = sphere_scene
+    cfg = TopologyConfig(kappa_lr=50.0)  # a huge step pushes kappa far out of [1, 50] at once
+    model = init_model(mesh, ds, ds.train_idx, cfg)
+    opts = GaussianOptimizers(model, cfg, learn_scales=False)
+    edges = torch.tensor(np.array(model.mesh().edges()), dtype=torch.int32)
+    tensors = ViewTensors(ds, "cpu")
+    seen = []
+    for i in range(6):
+        gaussian_step(model, ds, int(ds.train_idx[i]), cfg, opts, topology_phase=True, edges=edges, tensors=tensors)
+        seen.append(float(model.kappa.detach()) * model.s)
+    lo, hi = cfg.kappa_clamp
+    assert all(lo - 1e-6 <= k <= hi + 1e-6 for k in seen)
+    assert max(seen) == pytest.approx(hi) or min(seen) == pytest.approx(lo)
+
+
+def test_ablation_flags_switch_exactly_their_settings():
+    base = preset("fast")
+    abl = base.with_ablations(continuous_opacity=False, uniform_biharmonic=True, single_stage_hc=True)
+    assert abl.topology.continuous_opacity is False
+    assert abl.geometry.uniform_biharmonic is True and abl.geometry.two_stage_hc is False
+    from dataclasses import replace
+
+    assert replace(abl.topology, continuous_opacity=True) == base.topology
+    assert replace(abl.geometry, uniform_biharmonic=False, two_stage_hc=True) == base.geometry
+    from holowarp.reconstruct import build_parser, config_from_args
+
+    args = build_parser().parse_args(["--out", "x", "--no-continuous-opacity", "--uniform-biharmonic",
+                                      "--single-stage-hc"])
+    assert config_from_args(args) == abl
+
+
+def test_ablation_without_continuous_opacity_starts_from_the_field_with_free_opacities(sphere_scene):
+    from holowarp.stages.topology import init_model
+
+    ds, mesh = sphere_scene
+    field = init_model(mesh, ds, ds.train_idx, TopologyConfig())
+    free = init_model(mesh, ds, ds.train_idx, TopologyConfig(continuous_opacity=False))
+    assert not field.free_opacity and free.free_opacity
+    torch.testing.assert_close(free.opacities(), field.opacities(), rtol=1e-5, atol=1e-6)
+
+
 def test_mesh_lambda_decays_quadratically_to_zero():
     T = 1000
     assert mesh_lambda(0, T) == 1.0
@@ -98,12 +192,28 @@ def test_revert_keeps_every_tet_above_its_floor_and_leaves_others_alone(rng):
     assert int(kept.sum()) > 0
 
 
-def test_sample_masks_reads_inside_and_outside_of_the_silhouettes(sphere_scene):
+def test_hull_field_reads_inside_and_outside_of_the_silhouettes(sphere_scene):
     ds, _ = sphere_scene
     pts = np.array([[0.0, 0.0, 0.0], [0.2, -0.1, 0.1], [0.6, 0.0, 0.0], [0.0, 0.0, 5.0]])
-    m = sample_masks(pts, ds, ds.train_idx).min(axis=1)
+    m, seen = hull_field(ds, pts, ds.train_idx)
     assert m[0] > 0.99 and m[1] > 0.99
     assert m[2] < 0.01 and m[3] == 0.0
+    assert inside_hull(ds, pts, ds.train_idx).tolist() == [True, True, False, False]
+
+
+def test_hull_field_matches_a_float64_bilinear_reference_on_random_points(sphere_scene, rng):
+    from oracles import bilinear_masks
+
+    ds, _ = sphere_scene
+    pts = rng.uniform(-0.6, 0.6, (3000, 3))
+    ref_vals, ref_seen = bilinear_masks(pts, ds, ds.train_idx)
+    field, seen = hull_field(ds, pts, ds.train_idx)
+    # Points whose projection lies within float32 round-off of an image border are ambiguous.
+    np.testing.assert_allclose(field, ref_vals.min(axis=1), atol=2e-5)
+    # The carve stops at the first view that rejects a point, so the view count is exact
+    # where the field is positive.
+    pos = field > 0
+    assert pos.mean() > 0.1 and np.mean(seen[pos] == ref_seen[pos].sum(axis=1)) > 0.99
 
 
 def test_visual_hull_field_is_negative_inside_and_grows_like_a_distance(sphere_scene):
@@ -122,7 +232,7 @@ def test_visual_hull_field_is_negative_inside_and_grows_like_a_distance(sphere_s
 
 def test_prune_removes_low_alpha_tets_and_keeps_the_largest_piece():
     a = box_tetmesh((3, 3, 3))
-    model = TetGaussians(a, continuous_opacity=False)
+    model = TetGaussians(a, free_opacity=True)
     alpha = np.full(model.num_tets, 0.9)
     centres = a.vertices[a.tets].mean(axis=1)
     # Carve a slab through the middle, leaving two pieces of different sizes.
@@ -148,7 +258,7 @@ def test_geometry_block_fits_silhouettes_without_inverting_tets(sphere_scene):
     # field, a staircase around the sphere that the block must fit to the silhouettes.
     phi = init_phi(mesh, ds, ds.train_idx, TopologyConfig())
     carved, _ = mesh.submesh(phi[mesh.tets].mean(axis=1) < 0).keep_largest_component()
-    model = TetGaussians(carved, continuous_opacity=False)
+    model = TetGaussians(carved, free_opacity=True)
     before = _mask_error(model, ds)
     ball = 4 / 3 * math.pi * RADIUS**3
     cfg = GeometryConfig(lr_start=4e-3, lr_end=2e-3)
@@ -178,7 +288,7 @@ def _mask_error(model, ds) -> float:
 
 def test_prune_never_opens_sealed_cavities_nor_leaves_a_non_manifold_boundary(rng):
     mesh = box_tetmesh((6, 6, 6))
-    model = TetGaussians(mesh, continuous_opacity=False)
+    model = TetGaussians(mesh, free_opacity=True)
     centres = mesh.vertices[mesh.tets].mean(axis=1)
     # Random low-alpha tets everywhere (pinches galore) plus one sealed central pocket.
     low = rng.random(mesh.num_tets) < 0.2

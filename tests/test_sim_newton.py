@@ -18,7 +18,7 @@ import pytest
 
 pytest.importorskip("newton", reason="Newton (holowarp's test extra) is the reference engine")
 
-from holowarp.metrics import unit_cube_transform  # noqa: E402
+from holowarp.frame import unit_cube_transform  # noqa: E402
 from holowarp.metrics.surface import chamfer_metrics, sample_surface  # noqa: E402
 from holowarp.primitives import box_tetmesh  # noqa: E402
 from holowarp.sim import load_scene  # noqa: E402

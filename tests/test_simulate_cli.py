@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from holowarp.mesh_io import write_surface, write_tetmesh
+from holowarp.mesh_io import write_tetmesh
+from holowarp.surface_io import write_surface
 from holowarp.primitives import box_tetmesh
 from holowarp.simulate import main
 

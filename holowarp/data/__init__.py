@@ -1,5 +1,4 @@
-"""Multi-view datasets: one :class:`Dataset` type, loaders for the formats of the field, and
-the ground-truth view synthesiser.
+"""Multi-view datasets: one :class:`Dataset` type and loaders for the layouts of the field.
 
 - :class:`holowarp.data.Dataset`: images, masks, intrinsics, world-to-camera matrices,
   optional normal maps, and the train/test split (method.md §1–§2).

@@ -11,10 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
+from holowarp.errors import InputError
+
 __all__ = ["Dataset", "DatasetError"]
 
 
-class DatasetError(ValueError):
+class DatasetError(InputError):
     """A dataset folder or its contents cannot be used; the message names the file."""
 
 

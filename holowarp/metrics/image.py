@@ -1,6 +1,9 @@
 """Image metrics: PSNR (RGB or silhouettes), SSIM, and LPIPS availability (method.md §9).
 
-PSNR is ``10 log10(max_val^2 / MSE)`` and is ``inf`` for identical images. LPIPS needs
+PSNR is ``10 log10(max_val^2 / MSE)`` and is ``inf`` for identical images. SSIM is holowarp's
+own differentiable torch implementation (Gaussian window 11, sigma 1.5, valid convolution,
+the constants of Wang et al. 2004; checked against ``pytorch-msssim`` in the tests); the
+photometric loss of :mod:`holowarp.losses` uses the same function. LPIPS needs
 pretrained backbone weights; holowarp never downloads them, so :func:`lpips_status` reports
 whether they are on disk and why not.
 """
@@ -12,14 +15,118 @@ import os
 from pathlib import Path
 
 import numpy as np
+import torch
+import torch.nn.functional as F
 
-__all__ = ["psnr", "mask_psnr", "ssim", "lpips_status"]
+__all__ = ["SSIM_WINDOW", "SSIM_SIGMA", "psnr", "mask_psnr", "ssim", "lpips_status"]
+
+#: SSIM Gaussian window size and standard deviation (Wang et al. 2004).
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+_SSIM_K1 = 0.01
+_SSIM_K2 = 0.03
+
+
+def _to_bchw(img: torch.Tensor) -> torch.Tensor:
+    if img.ndim == 3:  # [H, W, C]
+        return img.permute(2, 0, 1).unsqueeze(0)
+    if img.ndim == 4:
+        return img
+    raise ValueError(f"expected an image [H, W, C] or [B, C, H, W], got shape {tuple(img.shape)}")
+
+
+def _gaussian_window(size: int, sigma: float, dtype, device) -> torch.Tensor:
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
+    g = torch.exp(-(x**2) / (2.0 * sigma**2))
+    return g / g.sum()
+
+
+_BAND_CACHE: dict = {}
+#: Up to this image side the valid Gaussian filter runs as two banded matrix products (much
+#: faster than a depthwise convolution on the CPU); above it as a separable convolution.
+_BAND_MAX_SIDE = 320
+
+
+def _band(n: int, size: int, sigma: float, dtype, device) -> torch.Tensor:
+    """[n - size + 1, n] matrix whose rows hold the window at successive offsets."""
+    key = (n, size, sigma, dtype, str(device))
+    band = _BAND_CACHE.get(key)
+    if band is None:
+        g = _gaussian_window(size, sigma, dtype, device)
+        m = n - size + 1
+        band = torch.zeros(m, n, dtype=dtype, device=device)
+        rows = torch.arange(m, device=device)
+        for k in range(size):
+            band[rows, rows + k] = g[k]
+        if len(_BAND_CACHE) > 32:
+            _BAND_CACHE.clear()
+        _BAND_CACHE[key] = band
+    return band
+
+
+def _gaussian_blur_valid(t: torch.Tensor, size: int, sigma: float) -> torch.Tensor:
+    """Separable Gaussian filter without padding of [B, C, H, W] -> [B, C, H', W']."""
+    h, w = t.shape[-2:]
+    if max(h, w) <= _BAND_MAX_SIDE:
+        bh = _band(h, size, sigma, t.dtype, t.device)
+        bw = _band(w, size, sigma, t.dtype, t.device)
+        return bh @ t @ bw.T
+    c = t.shape[1]
+    g = _gaussian_window(size, sigma, t.dtype, t.device)
+    wx = g.view(1, 1, 1, -1).expand(c, 1, 1, size)
+    wy = g.view(1, 1, -1, 1).expand(c, 1, size, 1)
+    return F.conv2d(F.conv2d(t, wx, groups=c), wy, groups=c)
+
+
+def ssim(
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    *,
+    data_range: float = 1.0,
+    window_size: int = SSIM_WINDOW,
+    sigma: float = SSIM_SIGMA,
+    reduce: bool = True,
+) -> torch.Tensor:
+    """Structural similarity of two images (same shape, ``[H, W, C]`` or ``[B, C, H, W]``).
+
+    Gaussian-weighted local statistics with a separable window and *valid* convolution (no
+    padding), the convention of Wang et al.'s reference code and ``pytorch-msssim``.
+
+    Returns:
+        the mean SSIM (scalar) if ``reduce``, else the SSIM map ``[B, C, H', W']``.
+    """
+    if img1.shape != img2.shape:
+        raise ValueError(f"ssim: image shapes differ: {tuple(img1.shape)} vs {tuple(img2.shape)}")
+    x, y = _to_bchw(img1), _to_bchw(img2)
+    c = x.shape[1]
+    if min(x.shape[-2:]) < window_size:
+        raise ValueError(f"ssim: images {tuple(x.shape[-2:])} are smaller than the {window_size}-pixel window")
+    # All five local moments in one filtering pass.
+    stats = _gaussian_blur_valid(torch.cat([x, y, x * x, y * y, x * y], dim=1), window_size, sigma)
+    mu_x, mu_y, exx, eyy, exy = stats.split(c, dim=1)
+    sxx = exx - mu_x * mu_x
+    syy = eyy - mu_y * mu_y
+    sxy = exy - mu_x * mu_y
+    c1 = (_SSIM_K1 * data_range) ** 2
+    c2 = (_SSIM_K2 * data_range) ** 2
+    cs = (2.0 * sxy + c2) / (sxx + syy + c2)
+    smap = ((2.0 * mu_x * mu_y + c1) / (mu_x * mu_x + mu_y * mu_y + c1)) * cs
+    return smap.mean() if reduce else smap
+
+
+
+
+def _np64(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, dtype=np.float64)
 
 
 def psnr(pred, target, *, max_val: float = 1.0) -> float:
-    """PSNR in dB over all elements of two same-shaped arrays; ``inf`` when identical."""
-    a = np.asarray(pred, dtype=np.float64)
-    b = np.asarray(target, dtype=np.float64)
+    """PSNR in dB over all elements of two same-shaped arrays or tensors; ``inf`` when
+    identical."""
+    a = _np64(pred)
+    b = _np64(target)
     if a.shape != b.shape:
         raise ValueError(f"psnr: shapes differ, {a.shape} vs {b.shape}")
     mse = float(np.mean((a - b) ** 2))
@@ -35,22 +142,6 @@ def mask_psnr(pred_masks, gt_masks) -> float:
     does not make the average infinite; ``inf`` only when every view matches exactly.
     """
     return psnr(np.clip(pred_masks, 0, 1), np.clip(gt_masks, 0, 1))
-
-
-def ssim(pred, target) -> float:
-    """Mean SSIM (Gaussian window 11, sigma 1.5) of (H, W, 3) or (N, H, W, 3) images in [0, 1]."""
-    import torch
-    from pytorch_msssim import ssim as _ssim
-
-    a = np.asarray(pred, dtype=np.float32)
-    b = np.asarray(target, dtype=np.float32)
-    if a.shape != b.shape:
-        raise ValueError(f"ssim: shapes differ, {a.shape} vs {b.shape}")
-    if a.ndim == 3:
-        a, b = a[None], b[None]
-    ta = torch.from_numpy(a).permute(0, 3, 1, 2)
-    tb = torch.from_numpy(b).permute(0, 3, 1, 2)
-    return float(_ssim(ta, tb, data_range=1.0, size_average=True))
 
 
 def lpips_status() -> tuple[bool, str]:

@@ -1,7 +1,7 @@
 """Volume IoU by inside tests on uniform points (method.md §9).
 
 The inside test is Warp's fast generalised winding number on a BVH
-(:mod:`holowarp.kernels.winding`): robust for closed surfaces with small defects, fast on
+(:func:`holowarp.ops.winding.winding_inside`): robust for closed surfaces with small defects, fast on
 CPU, and the same code on CUDA.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from holowarp.device import init_warp, resolve_device
+from holowarp.ops.winding import winding_inside
 
 __all__ = ["inside_mask", "volume_iou", "VOLUME_POINTS", "VOLUME_PADDING"]
 
@@ -21,33 +21,17 @@ VOLUME_PADDING = 0.05
 
 def inside_mask(vertices, faces, points, *, device: str = "cpu") -> np.ndarray:
     """(P,) bool: which ``points`` (P, 3) lie inside the closed surface (V, 3)/(F, 3)."""
-    wp = init_warp()
-    from holowarp.kernels.winding import winding_inside_kernel
-
-    dev = resolve_device(device)
-    v = np.ascontiguousarray(vertices, dtype=np.float32)
-    f = np.ascontiguousarray(faces, dtype=np.int32)
-    p = np.ascontiguousarray(points, dtype=np.float32)
+    v = np.asarray(vertices, dtype=np.float32)
+    p = np.asarray(points, dtype=np.float32)
     result = np.zeros(len(p), dtype=bool)
-    if len(f) == 0 or len(p) == 0:
+    if len(faces) == 0 or len(p) == 0:
         return result
     # A point outside the surface's bounding box is outside it: skip the BVH query.
     lo, hi = v.min(0), v.max(0)
     pad = 1e-6 * float((hi - lo).max())
     cand = np.flatnonzero(np.all((p >= lo - pad) & (p <= hi + pad), axis=1))
-    if len(cand) == 0:
-        return result
-    p = np.ascontiguousarray(p[cand])
-    mesh = wp.Mesh(
-        points=wp.array(v, dtype=wp.vec3, device=dev),
-        indices=wp.array(f.ravel(), dtype=wp.int32, device=dev),
-        support_winding_number=True,
-    )
-    pts = wp.array(p, dtype=wp.vec3, device=dev)
-    out = wp.zeros(len(p), dtype=wp.int32, device=dev)
-    span = float(np.linalg.norm(np.concatenate([v, p]).max(0) - np.concatenate([v, p]).min(0)))
-    wp.launch(winding_inside_kernel, dim=len(p), inputs=[mesh.id, pts, 2.0 * span + 1.0], outputs=[out], device=dev)
-    result[cand] = out.numpy().astype(bool)
+    if len(cand):
+        result[cand] = winding_inside(v, faces, p[cand], device=device)
     return result
 
 

@@ -13,7 +13,7 @@ import warp as wp
 
 from holowarp.device import init_warp
 
-__all__ = ["wp_device", "to_wp", "zeros_wp", "torch_stream"]
+__all__ = ["wp_device", "to_wp", "torch_stream"]
 
 init_warp()
 
@@ -36,11 +36,6 @@ def to_wp(t: torch.Tensor, dtype=None) -> wp.array:
     if not t.is_contiguous():
         t = t.contiguous()
     return wp.from_torch(t, dtype=dtype, requires_grad=False)
-
-
-def zeros_wp(shape, dtype, device: str) -> wp.array:
-    """Zero-initialised Warp array (convenience for outputs)."""
-    return wp.zeros(shape, dtype=dtype, device=device)
 
 
 def torch_stream(t: torch.Tensor):

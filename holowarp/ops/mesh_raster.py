@@ -101,67 +101,51 @@ def _as_matrix(m, shape, name) -> np.ndarray:
     return m
 
 
+def _setup_faces(x_wp, faces_wp, R, t, Kmat, V: int, F: int, near: float, dev):
+    """Project the vertices and set up every face's screen triangle, edge equations, 1/z
+    and normal (kernels ``project_vertices_kernel`` and ``face_setup_kernel``)."""
+    pc = wp.empty(V, dtype=wp.vec3, device=dev)
+    uv = wp.empty(V, dtype=wp.vec2, device=dev)
+    wp.launch(K_.project_vertices_kernel, dim=V, inputs=[x_wp, R, t, Kmat], outputs=[pc, uv], device=dev)
+    f = {k: wp.empty(F, dtype=d, device=dev) for k, d in (
+        ("p0", wp.vec2), ("p1", wp.vec2), ("p2", wp.vec2), ("edge_len", wp.vec3), ("inv_z", wp.vec3),
+        ("inv_area2", float), ("front", wp.int32), ("fnormal", wp.vec3), ("edge_eq", wp.mat33))}  # fmt: skip
+    wp.launch(K_.face_setup_kernel, dim=F, inputs=[faces_wp, x_wp, pc, uv, float(near)],
+              outputs=[f["p0"], f["p1"], f["p2"], f["edge_len"], f["inv_z"], f["inv_area2"], f["front"], f["fnormal"],
+                       f["edge_eq"]], device=dev)
+    return pc, uv, f
+
+
+def _bin_faces(f: dict, nbr_wp, F: int, W: int, H: int, tile_size: int, tiles_x: int, T: int, dev):
+    """Silhouette flags and per-tile face lists: (contour, tile_offsets, tile_counts, tile_faces)."""
+    contour = wp.empty(F, dtype=wp.int32, device=dev)
+    tile_rect = wp.empty(F, dtype=wp.vec4i, device=dev)
+    tile_counts = wp.zeros(T, dtype=wp.int32, device=dev)
+    wp.launch(K_.face_bin_count_kernel, dim=F, inputs=[f["front"], nbr_wp, f["p0"], f["p1"], f["p2"], W, H, tile_size,
+                                                       tiles_x], outputs=[contour, tile_rect, tile_counts], device=dev)
+    tile_offsets = wp.empty(T, dtype=wp.int32, device=dev)
+    wp.utils.array_scan(tile_counts, tile_offsets, inclusive=False)
+    # one host read to size the face lists (a device sync on CUDA)
+    total = int(wp.to_torch(tile_offsets)[-1].item()) + int(wp.to_torch(tile_counts)[-1].item())
+    tile_faces = wp.empty(max(total, 1), dtype=wp.int32, device=dev)
+    tile_fill = wp.zeros(T, dtype=wp.int32, device=dev)
+    wp.launch(K_.tile_fill_kernel, dim=F, inputs=[tile_rect, tiles_x, tile_offsets, tile_fill], outputs=[tile_faces],
+              device=dev)
+    return contour, tile_offsets, tile_counts, tile_faces
+
+
 class _RasterizeMesh(torch.autograd.Function):
     @staticmethod
     def forward(ctx, vertices, faces, neighbors, R, t, Kmat, width, height, tile_size, near):
         dev = wp_device(vertices)
         tdev = vertices.device
-        V = vertices.shape[0]
-        F = faces.shape[0]
-        H, W = height, width
+        V, F, H, W = vertices.shape[0], faces.shape[0], height, width
         tiles_x = (W + tile_size - 1) // tile_size
         tiles_y = (H + tile_size - 1) // tile_size
-        T = tiles_x * tiles_y
-
         x_wp = to_wp(vertices, wp.vec3)
-        faces_wp = to_wp(faces, wp.vec3i)
-        nbr_wp = to_wp(neighbors, wp.vec3i)
-
-        pc = wp.empty(V, dtype=wp.vec3, device=dev)
-        uv = wp.empty(V, dtype=wp.vec2, device=dev)
-        wp.launch(K_.project_vertices_kernel, dim=V, inputs=[x_wp, R, t, Kmat], outputs=[pc, uv], device=dev)
-
-        p0 = wp.empty(F, dtype=wp.vec2, device=dev)
-        p1 = wp.empty(F, dtype=wp.vec2, device=dev)
-        p2 = wp.empty(F, dtype=wp.vec2, device=dev)
-        edge_len = wp.empty(F, dtype=wp.vec3, device=dev)
-        inv_z = wp.empty(F, dtype=wp.vec3, device=dev)
-        inv_area2 = wp.empty(F, dtype=float, device=dev)
-        front = wp.empty(F, dtype=wp.int32, device=dev)
-        fnormal = wp.empty(F, dtype=wp.vec3, device=dev)
-        edge_eq = wp.empty(F, dtype=wp.mat33, device=dev)
-        wp.launch(
-            K_.face_setup_kernel,
-            dim=F,
-            inputs=[faces_wp, x_wp, pc, uv, float(near)],
-            outputs=[p0, p1, p2, edge_len, inv_z, inv_area2, front, fnormal, edge_eq],
-            device=dev,
-        )
-
-        contour = wp.empty(F, dtype=wp.int32, device=dev)
-        tile_rect = wp.empty(F, dtype=wp.vec4i, device=dev)
-        tile_counts = wp.zeros(T, dtype=wp.int32, device=dev)
-        wp.launch(
-            K_.face_bin_count_kernel,
-            dim=F,
-            inputs=[front, nbr_wp, p0, p1, p2, W, H, tile_size, tiles_x],
-            outputs=[contour, tile_rect, tile_counts],
-            device=dev,
-        )
-        tile_offsets = wp.empty(T, dtype=wp.int32, device=dev)
-        wp.utils.array_scan(tile_counts, tile_offsets, inclusive=False)
-        # one host read to size the face lists (a device sync on CUDA)
-        total = int(wp.to_torch(tile_offsets)[-1].item()) + int(wp.to_torch(tile_counts)[-1].item())
-        tile_faces = wp.empty(max(total, 1), dtype=wp.int32, device=dev)
-        tile_fill = wp.zeros(T, dtype=wp.int32, device=dev)
-        wp.launch(
-            K_.tile_fill_kernel,
-            dim=F,
-            inputs=[tile_rect, tiles_x, tile_offsets, tile_fill],
-            outputs=[tile_faces],
-            device=dev,
-        )
-
+        pc, uv, f = _setup_faces(x_wp, to_wp(faces, wp.vec3i), R, t, Kmat, V, F, near, dev)
+        contour, tile_offsets, tile_counts, tile_faces = _bin_faces(
+            f, to_wp(neighbors, wp.vec3i), F, W, H, tile_size, tiles_x, tiles_x * tiles_y, dev)
         alpha = torch.empty((H, W), dtype=torch.float32, device=tdev)
         depth = torch.empty((H, W), dtype=torch.float32, device=tdev)
         face_id = torch.empty((H, W), dtype=torch.int32, device=tdev)
@@ -171,7 +155,8 @@ class _RasterizeMesh(torch.autograd.Function):
         wp.launch(
             K_.raster_kernel,
             dim=(H, W),
-            inputs=[tile_offsets, tile_counts, tile_faces, edge_eq, inv_z, inv_area2, fnormal, W, tile_size, tiles_x],
+            inputs=[tile_offsets, tile_counts, tile_faces, f["edge_eq"], f["inv_z"], f["inv_area2"], f["fnormal"], W,
+                    tile_size, tiles_x],
             outputs=[to_wp(depth.view(-1)), face_id_wp, to_wp(normal.view(-1, 3), wp.vec3)],
             device=dev,
         )
@@ -179,7 +164,7 @@ class _RasterizeMesh(torch.autograd.Function):
             K_.antialias_kernel,
             dim=(H, W),
             inputs=[
-                tile_offsets, tile_counts, tile_faces, p0, p1, p2, edge_len, contour, face_id_wp,
+                tile_offsets, tile_counts, tile_faces, f["p0"], f["p1"], f["p2"], f["edge_len"], contour, face_id_wp,
                 W, H, tile_size, tiles_x,
             ],
             outputs=[to_wp(alpha.view(-1)), to_wp(winner.view(-1))],
@@ -229,6 +214,42 @@ class _RasterizeMesh(torch.autograd.Function):
         return grad_x, None, None, None, None, None, None, None, None, None
 
 
+def _check_inputs(vertices, faces, viewmat, K, width, height, neighbors, tile_size, near):
+    """Validated, converted inputs of :func:`rasterize_mesh` (ValueError naming the argument)."""
+    if not isinstance(vertices, torch.Tensor):
+        vertices = torch.as_tensor(np.asarray(vertices), dtype=torch.float32)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or not vertices.is_floating_point():
+        raise ValueError(f"rasterize_mesh: vertices must be a (V, 3) float tensor, got {tuple(vertices.shape)} {vertices.dtype}")
+    dev = vertices.device
+    faces = torch.as_tensor(faces, device=dev)
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.is_floating_point():
+        raise ValueError(f"rasterize_mesh: faces must be a (F, 3) integer tensor, got {tuple(faces.shape)} {faces.dtype}")
+    width, height, tile_size = int(width), int(height), int(tile_size)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"rasterize_mesh: width and height must be positive, got {width}x{height}")
+    if tile_size <= 0:
+        raise ValueError(f"rasterize_mesh: tile_size must be positive, got {tile_size}")
+    if not (math.isfinite(near) and near > 0):
+        raise ValueError(f"rasterize_mesh: near must be a positive number, got {near}")
+    Vn = vertices.shape[0]
+    if faces.numel():
+        fmin, fmax = (int(v) for v in torch.aminmax(faces))
+        if fmin < 0 or fmax >= Vn:
+            raise ValueError(f"rasterize_mesh: faces index vertices outside [0, {Vn}) (min {fmin}, max {fmax})")
+    vm = _as_matrix(viewmat, (4, 4), "viewmat")
+    Km = _as_matrix(K, (3, 3), "K")
+    faces = faces.to(torch.int32).contiguous()
+    if neighbors is None:
+        neighbors = _cached_face_neighbors(faces)
+    else:
+        neighbors = torch.as_tensor(neighbors, device=dev)
+        if neighbors.shape != faces.shape:
+            raise ValueError(f"rasterize_mesh: neighbors must have shape {tuple(faces.shape)}, got {tuple(neighbors.shape)}")
+        neighbors = neighbors.to(torch.int32).contiguous()
+
+    return vertices, faces, neighbors, vm, Km, width, height, tile_size
+
+
 def rasterize_mesh(
     vertices: torch.Tensor,
     faces: torch.Tensor,
@@ -271,37 +292,9 @@ def rasterize_mesh(
         >>> out = rasterize_mesh(V, F, viewmat, K, 256, 256)
         >>> loss = (out["alpha"] - mask).abs().mean()
     """
-    if not isinstance(vertices, torch.Tensor):
-        vertices = torch.as_tensor(np.asarray(vertices), dtype=torch.float32)
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or not vertices.is_floating_point():
-        raise ValueError(f"rasterize_mesh: vertices must be a (V, 3) float tensor, got {tuple(vertices.shape)} {vertices.dtype}")
-    dev = vertices.device
-    faces = torch.as_tensor(faces, device=dev)
-    if faces.ndim != 2 or faces.shape[1] != 3 or faces.is_floating_point():
-        raise ValueError(f"rasterize_mesh: faces must be a (F, 3) integer tensor, got {tuple(faces.shape)} {faces.dtype}")
-    width, height, tile_size = int(width), int(height), int(tile_size)
-    if width <= 0 or height <= 0:
-        raise ValueError(f"rasterize_mesh: width and height must be positive, got {width}x{height}")
-    if tile_size <= 0:
-        raise ValueError(f"rasterize_mesh: tile_size must be positive, got {tile_size}")
-    if not (math.isfinite(near) and near > 0):
-        raise ValueError(f"rasterize_mesh: near must be a positive number, got {near}")
-    Vn = vertices.shape[0]
-    if faces.numel():
-        fmin, fmax = (int(v) for v in torch.aminmax(faces))
-        if fmin < 0 or fmax >= Vn:
-            raise ValueError(f"rasterize_mesh: faces index vertices outside [0, {Vn}) (min {fmin}, max {fmax})")
-    vm = _as_matrix(viewmat, (4, 4), "viewmat")
-    Km = _as_matrix(K, (3, 3), "K")
-    faces = faces.to(torch.int32).contiguous()
-    if neighbors is None:
-        neighbors = _cached_face_neighbors(faces)
-    else:
-        neighbors = torch.as_tensor(neighbors, device=dev)
-        if neighbors.shape != faces.shape:
-            raise ValueError(f"rasterize_mesh: neighbors must have shape {tuple(faces.shape)}, got {tuple(neighbors.shape)}")
-        neighbors = neighbors.to(torch.int32).contiguous()
-
+    vertices, faces, neighbors, vm, Km, width, height, tile_size = _check_inputs(
+        vertices, faces, viewmat, K, width, height, neighbors, tile_size, near)
+    dev, Vn = vertices.device, vertices.shape[0]
     # float32 kernels; .to() routes a float64 input's gradient back as float64
     x = vertices.to(torch.float32)
     R = wp.mat33(*vm[:3, :3].reshape(-1).tolist())

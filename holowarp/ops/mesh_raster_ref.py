@@ -34,6 +34,46 @@ def _edge_neighbors(faces) -> list[list[int]]:
     return nbr
 
 
+def _antialias(covered, contour, verts, xs, ys, P, H: int, W: int, dt, dev):
+    """Coverage (HW,) with the analytic silhouette band at pixels whose coverage differs from
+    a 4-neighbour's (the reference of the Warp ``antialias_kernel``)."""
+    alpha = covered.to(dt).clone()
+    cf, ck = torch.nonzero(contour, as_tuple=True)
+    if cf.numel():
+        A = verts[cf, ck]  # [C, 2]
+        B = verts[cf, (ck + 1) % 3]
+        E = B - A
+        cov2 = covered.reshape(H, W)
+        for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            qx, qy = xs + dx, ys + dy
+            valid = (qx >= 0) & (qx < W) & (qy >= 0) & (qy < H)
+            qcov = cov2[qy.clamp(0, H - 1), qx.clamp(0, W - 1)]
+            diff = (valid & (qcov != cov2)).reshape(-1)
+            idx = torch.nonzero(diff).squeeze(1)
+            if idx.numel() == 0:
+                continue
+            p = P[idx]  # [n, 2]
+            d = torch.tensor([dx, dy], dtype=dt, device=dev)
+            den = _cross2(d[None], E)  # [C]
+            ap = A[None] - p[:, None]  # [n, C, 2]
+            safe = torch.where(den == 0, torch.ones_like(den), den)
+            s = _cross2(ap, E[None]) / safe
+            t = _cross2(ap, d[None, None]) / safe
+            hit = (den != 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
+            inside_p = covered[idx]
+            # nearest crossing to the uncovered centre
+            key = torch.where(inside_p[:, None], s, -s).detach()
+            key = torch.where(hit, key, torch.full_like(key, -10.0))
+            kbest, j = key.max(dim=1)
+            found = kbest > -5
+            sd = -_cross2(E[j], p - A[j]) / E[j].norm(dim=1)
+            v = (_AA_BAND_PX + sd).clamp(0.0, 1.0)
+            cur = alpha[idx]
+            newv = torch.where(inside_p, torch.minimum(cur, v), torch.maximum(cur, v))
+            alpha = alpha.index_put((idx,), torch.where(found, newv, cur))
+    return alpha
+
+
 def rasterize_mesh_ref(vertices, faces, viewmat, K, width: int, height: int, *, near: float = 1.0e-3) -> dict:
     """Dense reference rasteriser.
 
@@ -90,41 +130,7 @@ def rasterize_mesh_ref(vertices, faces, viewmat, K, width: int, height: int, *, 
     depth = torch.where(covered, 1.0 / best_iz.clamp_min(1e-300), torch.zeros_like(best_iz))
     normal = torch.where(covered[:, None], fnormal[best_f.clamp_min(0)], torch.zeros(1, 3, dtype=dt, device=dev))
 
-    # anti-aliasing at pixels whose coverage differs from a 4-neighbour's
-    alpha = covered.to(dt).clone()
-    cf, ck = torch.nonzero(contour, as_tuple=True)
-    if cf.numel():
-        A = verts[cf, ck]  # [C, 2]
-        B = verts[cf, (ck + 1) % 3]
-        E = B - A
-        cov2 = covered.reshape(H, W)
-        for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-            qx, qy = xs + dx, ys + dy
-            valid = (qx >= 0) & (qx < W) & (qy >= 0) & (qy < H)
-            qcov = cov2[qy.clamp(0, H - 1), qx.clamp(0, W - 1)]
-            diff = (valid & (qcov != cov2)).reshape(-1)
-            idx = torch.nonzero(diff).squeeze(1)
-            if idx.numel() == 0:
-                continue
-            p = P[idx]  # [n, 2]
-            d = torch.tensor([dx, dy], dtype=dt, device=dev)
-            den = _cross2(d[None], E)  # [C]
-            ap = A[None] - p[:, None]  # [n, C, 2]
-            safe = torch.where(den == 0, torch.ones_like(den), den)
-            s = _cross2(ap, E[None]) / safe
-            t = _cross2(ap, d[None, None]) / safe
-            hit = (den != 0) & (s >= 0) & (s <= 1) & (t >= 0) & (t <= 1)
-            inside_p = covered[idx]
-            # nearest crossing to the uncovered centre
-            key = torch.where(inside_p[:, None], s, -s).detach()
-            key = torch.where(hit, key, torch.full_like(key, -10.0))
-            kbest, j = key.max(dim=1)
-            found = kbest > -5
-            sd = -_cross2(E[j], p - A[j]) / E[j].norm(dim=1)
-            v = (_AA_BAND_PX + sd).clamp(0.0, 1.0)
-            cur = alpha[idx]
-            newv = torch.where(inside_p, torch.minimum(cur, v), torch.maximum(cur, v))
-            alpha = alpha.index_put((idx,), torch.where(found, newv, cur))
+    alpha = _antialias(covered, contour, verts, xs, ys, P, H, W, dt, dev)
     return {
         "alpha": alpha.reshape(H, W),
         "normal": normal.reshape(H, W, 3),

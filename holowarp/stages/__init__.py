@@ -1,10 +1,16 @@
-"""The stages of the HoloTetSphere method, one module per method.md section.
+"""The stages of the HoloTetSphere method, one module per method.md section, in order (each
+imports only earlier ones; ``tests/test_layers.py`` checks it).
 
-- ``gaussian_init``: §3, stage 0 — 2DGS surfels trained from the images (``holowarp.gs2d``).
+- ``gaussian_init``: §3, stage 0 — 2DGS surfels trained from the images.
 - ``tet_init``: §4, tetrahedral initialisation — convex hull of the surfel centres, scaled by
-  1.1, tetrahedralised with fTetWild, one surfel per tet.
-- ``topology``: §5, topology optimisation — the per-vertex field phi, L_topo, pruning.
+  1.1, tetrahedralised with fTetWild.
+- ``topology``: §4–5, one surfel per tet; topology optimisation — the per-vertex field phi,
+  L_topo, pruning.
 - ``geometry``: §6, geometry optimisation — mesh-only blocks driven by L_geo.
 - ``cleanup``: §7, flip / drop / one component / manifold repair.
-- ``export``: §7, every output file and the previews.
+- ``improve``: §7b, element improvement — flips, smoothing, sliver removal.
+- ``export``: §7, every output file.
+
+The order of events between them is :meth:`holowarp.config.Schedule.events`; the pipeline
+that runs them is :mod:`holowarp.pipeline`.
 """

@@ -33,17 +33,17 @@ balance does not depend on the object's size or the mesh resolution.
 
 from __future__ import annotations
 
-import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from holowarp.config import GeometryConfig
+from holowarp.errors import RunError
 from holowarp.tetgs import TetGaussians
 
-__all__ = ["GeometryState", "mesh_lambda", "run_geometry_block", "signed_volumes_t", "revert_inverting_moves"]
+__all__ = ["BlockResume", "GeometryBlock", "GeometryState", "mesh_lambda", "run_geometry_block", "signed_volumes_t", "revert_inverting_moves"]
 
 
 def mesh_lambda(t: int, total: int) -> float:
@@ -88,11 +88,20 @@ def revert_inverting_moves(
 
 @dataclass
 class GeometryState:
-    """What persists across blocks (and checkpoints): the global mesh-iteration counter
-    and the loss history."""
+    """What persists across blocks (and checkpoints): the global mesh-iteration counter."""
 
     mesh_iter: int = 0
-    history: list = field(default_factory=list)
+
+
+@dataclass
+class BlockResume:
+    """A mesh block interrupted after ``step`` of its steps: the block's main iteration, its
+    rest positions (V, 3) float64 and the UniformAdam state at that step."""
+
+    at: int
+    step: int
+    rest: np.ndarray
+    opt: dict
 
 
 def _gs_normals(model: TetGaussians, dataset, view: int, width: int, height: int, cache: dict, rest: torch.Tensor):
@@ -108,6 +117,96 @@ def _gs_normals(model: TetGaussians, dataset, view: int, width: int, height: int
     return n.float(), a.float()
 
 
+class GeometryBlock:
+    """One mesh-only block (see the module docstring): the rest shape, energies, optimiser
+    and per-view caches, and :meth:`step`, one optimisation step.
+
+    Args:
+        model: the tet/surfel model; only ``model.vertices`` changes.
+        dataset: training data (images at the working resolution); ``views`` the train ids.
+        config: :class:`GeometryConfig`.
+        block_iters: steps in this block; ``total_mesh_iters``: T of lam(t) (all blocks).
+        rest_vertices: (V, 3) positions at the block's start (a resumed block passes the
+            saved ones; default: the model's current positions).
+        optimizer_state: the UniformAdam state to continue from (resume).
+    """
+
+    def __init__(self, model: TetGaussians, dataset, views, config: GeometryConfig, *, block_iters: int,
+                 total_mesh_iters: int, rest_vertices=None, optimizer_state: dict | None = None):
+        from holowarp.energies import TetEnergies
+        from holowarp.optim import UniformAdam
+
+        self.model, self.dataset, self.views, self.cfg = model, dataset, np.asarray(views), config
+        self.block_iters, self.total = int(block_iters), int(total_mesh_iters)
+        dev = model.device
+        mesh = model.mesh()
+        if rest_vertices is not None:
+            mesh = mesh.with_vertices(np.asarray(rest_vertices, dtype=np.float64))
+        self.rest_np = np.asarray(mesh.vertices, dtype=np.float64)
+        self.rest = torch.tensor(np.array(mesh.vertices), dtype=torch.float32, device=dev)
+        self.bf_np = mesh.boundary_faces()
+        self.faces = torch.tensor(np.array(self.bf_np), dtype=torch.int32, device=dev)
+        self.energies = TetEnergies(mesh, weights=None if config.uniform_biharmonic else "surface", device=dev)
+        edges = mesh.edges()
+        self.mean_edge = float(np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1).mean())
+        self.x = model.vertices
+        self.x.requires_grad_(True)
+        self.opt = UniformAdam([self.x], lr=config.lr_start, max_step=config.max_step * self.mean_edge)
+        if optimizer_state is not None:
+            self.opt.load_state_dict(optimizer_state)
+        self.masks = torch.as_tensor(dataset.masks, device=dev)
+        self.cache: dict = {}
+        with torch.no_grad():
+            self.floor = config.min_volume_fraction * signed_volumes_t(self.rest, model.tets).clamp_min(0)
+        self.reverted = 0
+
+    def step(self, k: int, t: int, seed: int) -> dict:
+        """Block step ``k`` (global mesh iteration ``t``) on the view drawn from
+        ``default_rng([seed, 1, t])``; returns its loss terms as floats."""
+        from holowarp.ops import rasterize_mesh
+        from holowarp.optim import cosine_lr
+
+        cfg, ds, x, en = self.cfg, self.dataset, self.x, self.energies
+        lr = cosine_lr(k, self.block_iters, cfg.lr_start, cfg.lr_end)
+        for g in self.opt.param_groups:
+            g["lr"] = lr
+        view = int(self.views[np.random.default_rng([seed, 1, t]).integers(len(self.views))])
+        H, W = ds.height, ds.width
+        out = rasterize_mesh(x, self.faces, ds.viewmats[view], ds.K[view], W, H)
+        l_mask = (out["alpha"] - self.masks[view]).abs().mean()
+        n_gs, a_gs = _gs_normals(self.model, ds, view, W, H, self.cache, self.rest)
+        sel = (out["alpha"] > 0) & (a_gs > 0.5)
+        if bool(sel.any()):
+            cos = (out["normal"] * n_gs).sum(-1)
+            l_norm = (1.0 - cos)[sel].mean()
+        else:
+            l_norm = x.sum() * 0.0
+        lam = mesh_lambda(t, self.total)
+        lam_cond = 1.0 if (not cfg.two_stage_hc or k >= self.block_iters // 2) else 0.0
+        l_hc = en.hc_laplacian(x, self.bf_np, lam_cond=lam_cond) / self.mean_edge**2
+        l_w = en.biharmonic(x)
+        p0, p1 = cfg.barrier_p
+        l_inv = en.inversion_penalty(x, p=p0 + (p1 - p0) * (t / max(self.total - 1, 1)))
+        loss = (cfg.w_mask * l_mask + cfg.w_norm * l_norm + lam * (cfg.c_hc * l_hc + cfg.c_w * l_w)
+                + cfg.c_barrier * l_inv)
+        if not torch.isfinite(loss):
+            raise RunError(f"geometry step {t}: non-finite loss (mask {l_mask.item()}, norm {l_norm.item()}); "
+                           "the mesh optimisation diverged")
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        x_old = x.detach().clone()
+        self.opt.step()
+        self.reverted += revert_inverting_moves(x.data, x_old, self.model.tets, floor=self.floor)
+        terms = {"loss": loss, "mask": l_mask, "norm": l_norm, "hc": l_hc, "w": l_w, "inv": l_inv}
+        return {**{k_: float(v.detach()) for k_, v in terms.items()}, "lam": lam, "lam_cond": lam_cond}
+
+    def finish(self) -> int:
+        """Stop optimising the vertices; returns the number of inverted tets (volume <= 0)."""
+        self.x.requires_grad_(False)
+        with torch.no_grad():
+            return int((signed_volumes_t(self.x, self.model.tets) <= 0).sum())
+
+
 def run_geometry_block(
     model: TetGaussians,
     dataset,
@@ -117,124 +216,53 @@ def run_geometry_block(
     block_iters: int,
     total_mesh_iters: int,
     state: GeometryState,
+    at: int = 0,
     seed: int = 0,
-    start: int = 0,
-    rest_vertices=None,
-    optimizer_state: dict | None = None,
+    resume: BlockResume | None = None,
     progress=None,
     checkpoint=None,
     checkpoint_every: int = 0,
+    log=None,
 ) -> dict:
-    """Run one mesh-only block of ``block_iters`` steps (resumable from ``start``).
+    """Run one mesh-only block of ``block_iters`` steps, inserted at main iteration ``at``.
 
     Args:
-        model: the tet/surfel model; only ``model.vertices`` changes.
-        dataset: training data (images at the working resolution); ``views`` the train ids.
-        config: :class:`GeometryConfig`.
-        block_iters: steps in this block; ``total_mesh_iters``: T of lam(t) (all blocks).
-        state: global mesh counter and history (advanced in place).
+        model, dataset, views, config, block_iters, total_mesh_iters: see :class:`GeometryBlock`.
+        state: the global mesh counter (advanced in place).
         seed: view choice of mesh step t is ``default_rng([seed, 1, t])``, so a resumed
             run draws the same views.
-        start: first step of this block to run (resume), with ``rest_vertices`` (V, 3) the
-            positions at the block's start and ``optimizer_state`` the UniformAdam state
-            saved at that step.
+        resume: continue this block from an interrupted state (its ``at`` must match).
         progress: optional tqdm bar (updated once per step, postfix shows the losses).
-        checkpoint: callable(block_step, optimizer_state) saving a resumable state; called
-            every ``checkpoint_every`` steps.
+        checkpoint: callable(:class:`BlockResume`) saving a resumable state; called every
+            ``checkpoint_every`` steps.
+        log: optional callable(record) given each step's ``{"mesh_iter": t, **losses}``.
 
     Returns:
         summary dict: ``steps``, ``seconds``, ``reverted_vertices``, ``final`` losses,
-        ``inverted`` (tets with volume <= 0 at the end).
+        ``inverted`` (tets with volume <= 0 at the end), ``mean_edge``.
     """
-    from holowarp.energies import TetEnergies
-    from holowarp.ops import rasterize_mesh
-    from holowarp.optim import UniformAdam, cosine_lr
-
-    dev = model.device
-    mesh = model.mesh()
-    if rest_vertices is not None:
-        mesh = mesh.with_vertices(np.asarray(rest_vertices, dtype=np.float64))
-    rest = torch.tensor(np.array(mesh.vertices), dtype=torch.float32, device=dev)
-    bf_np = mesh.boundary_faces()
-    faces = torch.tensor(np.array(bf_np), dtype=torch.int32, device=dev)
-    energies = TetEnergies(mesh, weights=None if config.uniform_biharmonic else "surface", device=dev)
-    edges = mesh.edges()
-    mean_edge = float(np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1).mean())
-    x = model.vertices
-    x.requires_grad_(True)
-    opt = UniformAdam([x], lr=config.lr_start, max_step=config.max_step * mean_edge)
-    if optimizer_state is not None:
-        opt.load_state_dict(optimizer_state)
-    H, W = dataset.height, dataset.width
-    masks = torch.as_tensor(dataset.masks, device=dev)
-    cache: dict = {}
-    tets = model.tets
-    with torch.no_grad():
-        floor = config.min_volume_fraction * signed_volumes_t(rest, tets).clamp_min(0)
-    reverted_total = 0
+    if resume is not None and resume.at != at:
+        resume = None
+    blk = GeometryBlock(model, dataset, views, config, block_iters=block_iters, total_mesh_iters=total_mesh_iters,
+                        rest_vertices=resume.rest if resume else None, optimizer_state=resume.opt if resume else None)
+    start = resume.step if resume else 0
     t0 = time.perf_counter()
     last = {}
-    p0, p1 = config.barrier_p
     for k in range(start, block_iters):
-        t = state.mesh_iter
-        lr = cosine_lr(k, block_iters, config.lr_start, config.lr_end)
-        for g in opt.param_groups:
-            g["lr"] = lr
-        view = int(views[np.random.default_rng([seed, 1, t]).integers(len(views))])
-        out = rasterize_mesh(x, faces, dataset.viewmats[view], dataset.K[view], W, H)
-        l_mask = (out["alpha"] - masks[view]).abs().mean()
-        n_gs, a_gs = _gs_normals(model, dataset, view, W, H, cache, rest)
-        sel = (out["alpha"] > 0) & (a_gs > 0.5)
-        if bool(sel.any()):
-            cos = (out["normal"] * n_gs).sum(-1)
-            l_norm = (1.0 - cos)[sel].mean()
-        else:
-            l_norm = x.sum() * 0.0
-        lam = mesh_lambda(t, total_mesh_iters)
-        second_half = k >= block_iters // 2
-        lam_cond = 1.0 if (not config.two_stage_hc or second_half) else 0.0
-        l_hc = energies.hc_laplacian(x, bf_np, lam_cond=lam_cond) / mean_edge**2
-        l_w = energies.biharmonic(x)
-        p = p0 + (p1 - p0) * (t / max(total_mesh_iters - 1, 1))
-        l_inv = energies.inversion_penalty(x, p=p)
-        loss = (
-            config.w_mask * l_mask
-            + config.w_norm * l_norm
-            + lam * (config.c_hc * l_hc + config.c_w * l_w)
-            + config.c_barrier * l_inv
-        )
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"geometry step {t}: non-finite loss (mask {l_mask.item()}, norm {l_norm.item()})")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        x_old = x.detach().clone()
-        opt.step()
-        reverted_total += revert_inverting_moves(x.data, x_old, tets, floor=floor)
-        last = {
-            "loss": float(loss.detach()),
-            "mask": float(l_mask.detach()),
-            "norm": float(l_norm.detach()),
-            "hc": float(l_hc.detach()),
-            "w": float(l_w.detach()),
-            "inv": float(l_inv.detach()),
-            "lam": lam,
-            "lam_cond": lam_cond,
-        }
-        state.history.append({"mesh_iter": t, **last})
+        last = blk.step(k, state.mesh_iter, seed)
+        if log is not None:
+            log({"mesh_iter": state.mesh_iter, **last})
         state.mesh_iter += 1
         if progress is not None:
             progress.update(1)
             progress.set_postfix(mask=f"{last['mask']:.4f}", norm=f"{last['norm']:.3f}", refresh=False)
         if checkpoint is not None and checkpoint_every and (k + 1) % checkpoint_every == 0 and k + 1 < block_iters:
-            checkpoint(k + 1, opt.state_dict())
-    x.requires_grad_(False)
-    with torch.no_grad():
-        inverted = int((signed_volumes_t(x, tets) <= 0).sum())
+            checkpoint(BlockResume(at, k + 1, blk.rest_np, blk.opt.state_dict()))
     return {
         "steps": block_iters - start,
         "seconds": time.perf_counter() - t0,
-        "reverted_vertices": reverted_total,
+        "reverted_vertices": blk.reverted,
         "final": last,
-        "inverted": inverted,
-        "mean_edge": mean_edge,
+        "inverted": blk.finish(),
+        "mean_edge": blk.mean_edge,
     }

@@ -14,12 +14,13 @@ from __future__ import annotations
 import numpy as np
 
 from holowarp.config import TetInitConfig
+from holowarp.errors import InputError
 from holowarp.tetmesh import TetMesh, tetrahedralize_surface
 
 __all__ = ["HullError", "initial_tetmesh", "scaled_hull"]
 
 
-class HullError(ValueError):
+class HullError(InputError):
     """The points do not span a 3D hull (too few views, too few or coplanar points)."""
 
 

@@ -20,10 +20,11 @@ prune the surfel scales are recomputed (0.65 x mean centroid-to-vertex distance)
 learnable, and opacities become free parameters initialised from the field.
 
 The field is initialised SDF-like (method.md leaves this open): ``phi_init="visual_hull"``
-labels each vertex inside/outside the masks' visual hull (it projects into every training
-mask) and sets phi to the signed graph distance to the label interface along mesh edges
+labels each vertex inside/outside the masks' visual hull (:func:`holowarp.carve.inside_hull`)
+and sets phi to the signed graph distance to the label interface along mesh edges
 (negative inside), which is what the eikonal term expects; ``"inside"`` starts every vertex
-at ``-phi_inside`` (all tets opaque).
+at ``-phi_inside`` (all tets opaque). :func:`init_model` builds the §4 model (one surfel per
+tet) with that field and colours sampled from the images.
 """
 
 from __future__ import annotations
@@ -31,50 +32,26 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from holowarp.camera import project_points
+from holowarp.carve import inside_hull
 from holowarp.config import TopologyConfig
-from holowarp.stages.cleanup import restore_until_manifold
+from holowarp.errors import RunError
+from holowarp.manifold import restore_until_manifold
 from holowarp.tetgs import TetGaussians
 from holowarp.tetmesh import TetMesh
 
 __all__ = [
     "GaussianOptimizers",
+    "ViewTensors",
+    "after_first_prune",
     "gaussian_step",
     "init_colors",
+    "init_model",
+    "init_model_from_surfels",
     "init_phi",
     "prune",
-    "sample_masks",
+    "prune_message",
 ]
-
-
-def sample_masks(points: np.ndarray, dataset, views) -> np.ndarray:
-    """Mask values (P, len(views)) at the projections of world ``points`` (P, 3).
-
-    Bilinear lookup; points behind a camera or outside its frame read 0 (the cameras see
-    the whole object, so anything out of frame is background).
-    """
-    P = np.asarray(points, dtype=np.float64)
-    out = np.zeros((len(P), len(views)), dtype=np.float32)
-    H, W = dataset.height, dataset.width
-    for j, v in enumerate(views):
-        Vm, K = dataset.viewmats[v], dataset.K[v]
-        pc = P @ Vm[:3, :3].T + Vm[:3, 3]
-        z = pc[:, 2]
-        ok = z > 1e-6
-        u = np.where(ok, K[0, 0] * pc[:, 0] / np.where(ok, z, 1) + K[0, 2], -1.0) - 0.5
-        w = np.where(ok, K[1, 1] * pc[:, 1] / np.where(ok, z, 1) + K[1, 2], -1.0) - 0.5
-        ok &= (u >= 0) & (u <= W - 1) & (w >= 0) & (w <= H - 1)
-        u0 = np.clip(np.floor(u).astype(np.int64), 0, W - 2)
-        w0 = np.clip(np.floor(w).astype(np.int64), 0, H - 2)
-        fu, fw = np.clip(u - u0, 0, 1), np.clip(w - w0, 0, 1)
-        m = dataset.masks[v]
-        val = (
-            m[w0, u0] * (1 - fu) * (1 - fw)
-            + m[w0, u0 + 1] * fu * (1 - fw)
-            + m[w0 + 1, u0] * (1 - fu) * fw
-            + m[w0 + 1, u0 + 1] * fu * fw
-        )
-        out[:, j] = np.where(ok, val, 0.0)
-    return out
 
 
 def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig) -> np.ndarray:
@@ -87,7 +64,7 @@ def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig) -> np.ndarra
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
-    inside = sample_masks(mesh.vertices, dataset, views).min(axis=1) > 0.5
+    inside = inside_hull(dataset, mesh.vertices, views)
     if inside.all() or not inside.any():
         return np.full(V, -config.phi_inside if inside.all() else config.phi_inside)
     E = mesh.edges().astype(np.int64)
@@ -108,26 +85,72 @@ def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig) -> np.ndarra
     return np.where(inside, -d, d)
 
 
-def init_colors(mesh: TetMesh, dataset, views, *, max_views: int = 24) -> np.ndarray:
+def init_colors(mesh: TetMesh, dataset, views, config: TopologyConfig) -> np.ndarray:
     """Initial surfel colours (M, 3): mean image colour at the tet centroid's projection over
-    the views where it falls inside the mask (grey where none)."""
-    T = mesh.tets
-    c = mesh.vertices[T].mean(axis=1)
-    views = np.asarray(views)[:: max(1, len(views) // max_views)]
+    every k-th training view (at most ``color_init_views``) where it falls inside the mask
+    (grey where none), clipped to ``[color_init_clip, 1 - color_init_clip]``."""
+    c = mesh.vertices[mesh.tets].mean(axis=1)
+    views = np.asarray(views)[:: max(1, len(views) // config.color_init_views)]
     acc = np.zeros((len(c), 3))
     cnt = np.zeros(len(c))
     H, W = dataset.height, dataset.width
     for v in views:
-        Vm, K = dataset.viewmats[v], dataset.K[v]
-        pc = c @ Vm[:3, :3].T + Vm[:3, 3]
-        z = np.maximum(pc[:, 2], 1e-9)
-        u = np.floor(K[0, 0] * pc[:, 0] / z + K[0, 2]).astype(np.int64)
-        w = np.floor(K[1, 1] * pc[:, 1] / z + K[1, 2]).astype(np.int64)
-        ok = (pc[:, 2] > 1e-6) & (u >= 0) & (u < W) & (w >= 0) & (w < H)
+        uv, z = project_points(c, dataset.viewmats[v], dataset.K[v])
+        u = np.floor(uv[:, 0]).astype(np.int64)
+        w = np.floor(uv[:, 1]).astype(np.int64)
+        ok = (z > 1e-6) & (u >= 0) & (u < W) & (w >= 0) & (w < H)
         ok[ok] &= dataset.masks[v][w[ok], u[ok]] > 0.5
         acc[ok] += dataset.images[v][w[ok], u[ok]]
         cnt[ok] += 1
-    return np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1)[:, None], 0.5).clip(0.02, 0.98)
+    lo = config.color_init_clip
+    return np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1)[:, None], 0.5).clip(lo, 1.0 - lo)
+
+
+def init_model(mesh: TetMesh, dataset, views, config: TopologyConfig, *, seed: int = 0, device="cpu") -> TetGaussians:
+    """The §4/§5 model of ``mesh``: one surfel per tet, the initial field and colours.
+
+    In the ablation "w/o continuous opacity" the per-tet opacities start from the same field,
+    so the comparison isolates the parameterisation (no shared vertices, no eik/smooth)."""
+    model = TetGaussians(mesh, colors=init_colors(mesh, dataset, views, config),
+                         phi=init_phi(mesh, dataset, views, config), config=config, device=device, seed=seed)
+    if not config.continuous_opacity:
+        model.freeze_opacity_from_field()
+    return model
+
+
+def init_model_from_surfels(gaussians_ply, dataset, tet_config, config: TopologyConfig, *, seed: int = 0,
+                            device="cpu", progress: bool = True) -> TetGaussians:
+    """§4 then the start of §5: the scaled convex hull of the stage-0 surfels in
+    ``gaussians_ply``, tetrahedralised with fTetWild (:func:`holowarp.stages.tet_init.initial_tetmesh`),
+    and its model (:func:`init_model`) on the training views."""
+    from holowarp.gaussians import load_gaussians_ply
+    from holowarp.progress import say
+    from holowarp.stages.tet_init import initial_tetmesh
+
+    say(f"tetrahedralising the {tet_config.hull_scale}x convex hull of the stage-0 surfels with fTetWild "
+        f"(edge length {tet_config.edge_length_fac} x bbox diagonal)", progress)
+    g = load_gaussians_ply(gaussians_ply)
+    mesh = initial_tetmesh(g["means"], g["opacities"], tet_config)
+    say(f"initial tet mesh: {mesh.num_tets} tets, {mesh.num_vertices} vertices", progress)
+    return init_model(mesh, dataset, dataset.train_idx, config, seed=seed, device=device)
+
+
+def after_first_prune(model: TetGaussians) -> None:
+    """§5: after the first prune, scales are recomputed from the tets and become learnable,
+    and opacities become free parameters initialised from the current field."""
+    model.reset_scales()
+    model.freeze_opacity_from_field()
+
+
+class ViewTensors:
+    """The training images composited on ``background`` (N, H, W, 3), the masks (N, H, W) and
+    the optional normal maps (N, H, W, 3) on the model's device, uploaded once."""
+
+    def __init__(self, dataset, device, background=(0.0, 0.0, 0.0)):
+        self.background = torch.as_tensor(background, dtype=torch.float32, device=device)
+        self.images = torch.as_tensor(dataset.composite(background), device=device)
+        self.masks = torch.as_tensor(dataset.masks, device=device)
+        self.normals = torch.as_tensor(dataset.normals, device=device) if dataset.normals is not None else None
 
 
 class GaussianOptimizers:
@@ -181,23 +204,17 @@ def gaussian_step(
     *,
     topology_phase: bool,
     edges: torch.Tensor | None,
-    images: torch.Tensor,
-    masks: torch.Tensor,
-    normals: torch.Tensor | None,
-    background: torch.Tensor,
+    tensors: ViewTensors,
 ) -> dict:
-    """One main-loop step on view ``view``; returns the loss terms as floats.
-
-    ``images`` (N, H, W, 3) must already be composited on ``background``.
-    """
+    """One main-loop step on view ``view``; returns the loss terms as floats."""
     from holowarp import losses
 
     H, W = dataset.height, dataset.width
     vm = torch.as_tensor(dataset.viewmats[view], dtype=torch.float32, device=model.device)
     Kt = torch.as_tensor(dataset.K[view], dtype=torch.float32, device=model.device)
-    out = model.render(vm, Kt, W, H, background=background)
-    gt = images[view]
-    m = masks[view]
+    out = model.render(vm, Kt, W, H, background=tensors.background)
+    gt = tensors.images[view]
+    m = tensors.masks[view]
     l_rgb = losses.l1_dssim_loss(out["rgb"], gt, lambda_dssim=config.dssim_weight)
     l_mask = losses.mask_loss(out["alpha"], m)
     # Depth-derived normals from the median depth (robust at silhouettes, as 2DGS does for
@@ -208,8 +225,8 @@ def gaussian_step(
     l_normal = losses.ranked_normal_loss(out["normal"], n_depth, mask=opaque, top_fraction=frac)
     loss = config.w_rgb * l_rgb + config.w_mask * l_mask + config.w_normal * l_normal
     terms = {"rgb": float(l_rgb.detach()), "mask": float(l_mask.detach()), "normal": float(l_normal.detach())}
-    if normals is not None and config.w_prior > 0:
-        prior = normals[view]
+    if tensors.normals is not None and config.w_prior > 0:
+        prior = tensors.normals[view]
         has = opaque & (prior.norm(dim=-1) > 0.5) & (n_depth.norm(dim=-1) > 0.5)
         e = _one_minus_cos(prior, out["normal"]) + _one_minus_cos(prior, n_depth)
         l_prior = losses.ranked_loss(e, mask=has, top_fraction=frac)
@@ -224,7 +241,7 @@ def gaussian_step(
         loss = loss + config.lam_eik * l_eik + config.lam_smooth * l_smooth
         terms.update(eik=float(l_eik.detach()), smooth=float(l_smooth.detach()))
     if not torch.isfinite(loss):
-        raise FloatingPointError(f"main-loop step on view {view}: non-finite loss {terms}")
+        raise RunError(f"main-loop step on view {view}: non-finite loss {terms}")
     optimizers.zero_grad()
     loss.backward()
     optimizers.step()
@@ -268,9 +285,6 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
         kept because three or more of their faces meet kept tets), ``restored_for_manifold``,
         ``removed_components``, ``tets_removed_by_component``, ``tets_after``, ``emptied``.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     with torch.no_grad():
         alpha = model.opacities().cpu().numpy()
     mesh = model.mesh()
@@ -283,37 +297,15 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
                     raw_components=0, raw_non_manifold=0,
                     tets_removed_by_component=0, tets_after=M)
         return info
-    # Sealed cavities: components of the low-alpha set (through shared faces) that never
-    # reach a boundary face of the current mesh.
     adj = mesh.face_adjacency()
-    rows = np.repeat(np.arange(M), 4)
-    cols = adj.reshape(-1)
-    both = (cols >= 0) & low[rows] & low[np.maximum(cols, 0)]
-    g = coo_matrix((np.ones(int(both.sum())), (rows[both], cols[both])), shape=(M, M))
-    _, lab = connected_components(g, directed=False)
-    open_comp = np.zeros(lab.max() + 1, dtype=bool)
-    touches_outside = low & np.any(adj < 0, axis=1)
-    open_comp[lab[touches_outside]] = True
-    drop = low & open_comp[lab]
+    drop = _open_low_alpha(low, adj)
     info["kept_cavity"] = int((low & ~drop).sum())
     # What the plain rule (delete every open low-alpha tet) would leave: the measure of how
     # coherent the opacities are (the paper's "Num. components" of its ablation).
     raw = TetMesh(mesh.vertices, T[~drop], validate=False)
     info["raw_components"] = int(raw.num_components())
     info["raw_non_manifold"] = int(len(raw.non_manifold_edges()) + len(raw.non_manifold_vertices()))
-    # Dents: a tet whose faces (>= 3 of 4) all meet kept tets would leave a one-tet pit in
-    # the surface. A single transparent surfel among opaque neighbours is a rendering
-    # artefact (it is redundant where its neighbours already cover its pixels), not
-    # evidence of empty space, so such tets stay; pruning keeps removing coherent regions.
-    filled = 0
-    for _ in range(3):
-        kept_nb = np.where(adj >= 0, ~drop[np.maximum(adj, 0)], False).sum(axis=1)
-        dent = drop & (kept_nb >= 3)
-        if not dent.any():
-            break
-        drop &= ~dent
-        filled += int(dent.sum())
-    info["kept_dents"] = filled
+    info["kept_dents"] = _keep_dents(drop, adj, config)
     keep, restored = restore_until_manifold(mesh.vertices, T, ~drop, drop)
     info["restored_for_manifold"] = restored
     info["pruned"] = int((~keep).sum())
@@ -328,3 +320,52 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
     model.keep(ids)
     info.update(removed_components=max(n - 1, 0), tets_removed_by_component=removed, tets_after=model.num_tets)
     return info
+
+
+def _open_low_alpha(low: np.ndarray, adj: np.ndarray) -> np.ndarray:
+    """The low-alpha tets (M,) bool that connect, through shared faces of other low-alpha
+    tets, to a boundary face of the current mesh; the rest are sealed cavities."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    M = len(low)
+    rows = np.repeat(np.arange(M), 4)
+    cols = adj.reshape(-1)
+    both = (cols >= 0) & low[rows] & low[np.maximum(cols, 0)]
+    g = coo_matrix((np.ones(int(both.sum())), (rows[both], cols[both])), shape=(M, M))
+    _, lab = connected_components(g, directed=False)
+    open_comp = np.zeros(lab.max() + 1, dtype=bool)
+    touches_outside = low & np.any(adj < 0, axis=1)
+    open_comp[lab[touches_outside]] = True
+    return low & open_comp[lab]
+
+
+def _keep_dents(drop: np.ndarray, adj: np.ndarray, config: TopologyConfig) -> int:
+    """Take tets that would leave one-tet pits out of ``drop`` (in place); returns how many.
+
+    A tet with ``dent_faces`` or more of its faces on kept tets would leave a one-tet pit in
+    the surface. A single transparent surfel among opaque neighbours is a rendering artefact
+    (it is redundant where its neighbours already cover its pixels), not evidence of empty
+    space, so such tets stay; pruning keeps removing coherent regions."""
+    filled = 0
+    for _ in range(config.dent_rounds):
+        kept_nb = np.where(adj >= 0, ~drop[np.maximum(adj, 0)], False).sum(axis=1)
+        dent = drop & (kept_nb >= config.dent_faces)
+        if not dent.any():
+            break
+        drop &= ~dent
+        filled += int(dent.sum())
+    return filled
+
+
+def prune_message(info: dict, alpha: float) -> str:
+    """One status line describing a prune's report ``info`` (:func:`prune`)."""
+    if info.get("emptied"):
+        return (f"prune at iteration {info['iteration']}: every tet is below alpha {alpha}; "
+                "pruning would empty the mesh, so nothing was pruned")
+    msg = (f"prune at iteration {info['iteration']}: {info['pruned']} tets below alpha {alpha} removed, "
+           f"{info['tets_after']} remain")
+    if info.get("removed_components"):
+        msg += (f"; pruning split the mesh, kept the largest component and removed {info['removed_components']} "
+                f"other component(s) ({info['tets_removed_by_component']} tets)")
+    return msg

@@ -1,0 +1,102 @@
+"""The visual hull of a dataset's masks: one carve for every user.
+
+A point is inside the visual hull when it projects inside every training mask. The carve
+field is the minimum over views of the mask sampled bilinearly at the point's projection
+(:mod:`holowarp.ops.carve`), so its 0.5 level set is the hull boundary with sub-pixel
+placement from soft mask edges. Users:
+
+- preflight (:mod:`holowarp.preflight`): do the masks agree on a 3D object at all?
+- the vertex-field initialisation of §5 (:func:`holowarp.stages.topology.init_phi`);
+- stage 0's initial surfels (:func:`sample_points_in_hull`);
+- the visual-hull baseline (:mod:`holowarp.baselines.hull`), on a grid.
+
+Regions: :func:`look_region` is the cube every camera looks into (centred where the optical
+axes meet, half-size the nearest camera distance); :func:`view_sphere` the sphere every
+camera sees whole.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from holowarp.camera import axes_focus, camera_center
+from holowarp.ops.carve import carve_grid, carve_points
+
+__all__ = ["hull_field", "inside_hull", "hull_grid", "look_region", "view_sphere", "sample_points_in_hull"]
+
+
+def _views(dataset, views):
+    return np.asarray(dataset.train_idx if views is None else views, dtype=np.int64)
+
+
+def hull_field(dataset, points, views=None, *, outside_is_empty: bool = True, device: str = "cpu"):
+    """Carve field (P,) and the number of views seeing each point (P,) at world ``points``
+    (P, 3), over ``views`` (default: the training views)."""
+    v = _views(dataset, views)
+    return carve_points(dataset.viewmats[v], dataset.K[v], dataset.masks[v], points,
+                        outside_is_empty=outside_is_empty, device=device)
+
+
+def inside_hull(dataset, points, views=None, *, threshold: float = 0.5, device: str = "cpu") -> np.ndarray:
+    """(P,) bool: ``points`` (P, 3) inside the visual hull of ``views`` (every view sees the
+    whole object, so a point outside an image is outside the hull)."""
+    field, _ = hull_field(dataset, points, views, device=device)
+    return field > threshold
+
+
+def hull_grid(dataset, views, origin, spacing: float, shape, *, outside_is_empty: bool = True,
+              device: str = "cpu") -> np.ndarray:
+    """The carve field (NX, NY, NZ) float32 at grid nodes ``origin + (i, j, k) * spacing``."""
+    v = _views(dataset, views)
+    return carve_grid(dataset.viewmats[v], dataset.K[v], dataset.masks[v], origin, spacing, shape,
+                      outside_is_empty=outside_is_empty, device=device)
+
+
+def look_region(viewmats) -> tuple[np.ndarray, float]:
+    """``(centre (3,), half_size)``: the point nearest to every optical axis, and the distance
+    of the nearest camera from it; anything all cameras see in front of them lies in the cube
+    of that half-size around the centre."""
+    centre = axes_focus(viewmats)
+    dists = np.linalg.norm(np.array([camera_center(V) for V in viewmats]) - centre, axis=1)
+    return centre, float(dists.min())
+
+
+def view_sphere(dataset, views) -> tuple[np.ndarray, float]:
+    """Centre (3,) and radius of a sphere every camera in ``views`` sees whole: the point
+    nearest to all optical axes, and the largest radius inside the narrowest field of view."""
+    V = dataset.viewmats[views]
+    o = np.stack([camera_center(m) for m in V])
+    c = axes_focus(V)
+    K = dataset.K[views]
+    half = np.minimum.reduce([
+        np.arctan(K[:, 0, 2] / K[:, 0, 0]), np.arctan((dataset.width - K[:, 0, 2]) / K[:, 0, 0]),
+        np.arctan(K[:, 1, 2] / K[:, 1, 1]), np.arctan((dataset.height - K[:, 1, 2]) / K[:, 1, 1]),
+    ])  # fmt: skip
+    r = float(np.min(np.linalg.norm(o - c, axis=1) * np.sin(half)))
+    return c, r
+
+
+def sample_points_in_hull(dataset, n_points: int, *, views=None, candidates: int = 200_000, seed: int = 0,
+                          device: str = "cpu") -> tuple[np.ndarray, float]:
+    """Up to ``n_points`` uniform random points inside the visual hull of ``views``.
+
+    Candidates are uniform in the cube around :func:`view_sphere`; a candidate is kept when
+    at least one view sees it and every view that sees it has mask >= 0.5 there (views it
+    falls outside of do not count: the sphere, not the whole cube, is seen by all). If the
+    masks carve (almost) everything away, the whole view sphere is used instead.
+
+    Returns:
+        points (P, 3) float64 and the sampling radius.
+    """
+    rng = np.random.default_rng(seed)
+    idx = _views(dataset, views)
+    c, r = view_sphere(dataset, idx)
+    pts = c + rng.uniform(-r, r, (candidates, 3))
+    field, seen = hull_field(dataset, pts, idx, outside_is_empty=False, device=device)
+    keep = (field >= 0.5) & (seen > 0)
+    if keep.sum() < max(16, n_points // 50):
+        keep = np.linalg.norm(pts - c, axis=1) <= r
+    pts = pts[keep]
+    if len(pts) > n_points:
+        pts = pts[rng.choice(len(pts), n_points, replace=False)]
+    return pts, r

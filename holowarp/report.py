@@ -1,0 +1,143 @@
+"""The end of a reconstruction and its ``report.json``: one dict with every count, metric and
+path of a run (:func:`finish_run` runs cleanup, export, previews and metrics, then
+:func:`build_report` assembles the dict).
+
+Keys (a contract other tools read): ``preset``, ``device``, ``dataset``, ``resolution``,
+``ablations``, ``seconds_total``, ``stages``, ``tets_initial``, ``tets_final``,
+``vertices_final``, ``components``, ``manifold``, ``genus``, ``inverted_before_cleanup``,
+``flipped``, ``dropped``, ``cleanup``, ``inverted_ratio``, ``min_dihedral_mean``,
+``aspect_ratio_mean``, ``prunes``, ``raw_components_max``, ``geometry_blocks``, ``stage0``,
+``psnr_test``, ``ssim_test``, ``peak_rss_mb``, ``outputs``, ``previews``, ``config``, and
+``metrics`` (method.md §9) when the dataset has a ground-truth mesh.
+"""
+
+from __future__ import annotations
+
+import resource
+import sys
+import time
+
+import numpy as np
+
+__all__ = ["build_report", "finish_run", "image_metrics", "peak_rss_mb"]
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process in MiB (Linux reports KiB, macOS bytes)."""
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / (1024.0 * 1024.0) if sys.platform == "darwin" else r / 1024.0
+
+
+def image_metrics(renders, gts) -> tuple[float, float, list[float]]:
+    """Mean PSNR (dB), mean SSIM, and the per-view PSNRs of renders against ground truths
+    (lists of (H, W, 3) arrays in [0, 1])."""
+    import torch
+
+    from holowarp.metrics.image import psnr, ssim
+
+    ps, ss = [], []
+    for r, g in zip(renders, gts):
+        rt = torch.as_tensor(r)
+        gt = torch.as_tensor(np.asarray(g, dtype=np.float32))
+        ps.append(psnr(rt, gt))
+        ss.append(float(ssim(rt, gt)))
+    return float(np.mean(ps)), float(np.mean(ss)), ps
+
+
+def build_report(*, config, device, data_dir, dataset, state, clean, cleanup_info, psnr, ssim, outputs, previews,
+                 metrics=None) -> dict:
+    """The report of a finished run (``seconds_total`` and ``peak_rss_mb`` are filled in by
+    the caller once everything, writing included, is done)."""
+    man = clean.manifold()
+    q = clean.quality_summary()
+    report = {
+        "preset": config.preset,
+        "device": str(device),
+        "dataset": str(data_dir),
+        "resolution": [dataset.height, dataset.width],
+        "ablations": {
+            "continuous_opacity": config.topology.continuous_opacity,
+            "uniform_biharmonic": config.geometry.uniform_biharmonic,
+            "single_stage_hc": not config.geometry.two_stage_hc,
+        },
+        "seconds_total": None,
+        "stages": state.stages,
+        "tets_initial": state.tets_initial,
+        "tets_final": clean.num_tets,
+        "vertices_final": clean.num_vertices,
+        "components": clean.num_components(),
+        "manifold": bool(man["manifold"]),
+        "genus": clean.genus(),
+        "inverted_before_cleanup": cleanup_info["inverted_before_cleanup"],
+        "flipped": cleanup_info["flipped"],
+        "dropped": cleanup_info["dropped"],
+        "cleanup": cleanup_info,
+        "inverted_ratio": q["inverted_ratio"],
+        "min_dihedral_mean": q["min_dihedral_mean"],
+        "aspect_ratio_mean": q["aspect_ratio_mean"],
+        "prunes": state.prunes,
+        # Coherence of the pruning decisions (the paper's ablation measure): the most
+        # face-connected pieces any prune's plain rule would have left.
+        "raw_components_max": max((p.get("raw_components", 1) for p in state.prunes), default=1),
+        "geometry_blocks": state.geometry_blocks,
+        "stage0": state.stage0,
+        "psnr_test": psnr,
+        "ssim_test": ssim,
+        "peak_rss_mb": None,
+        "outputs": outputs,
+        "previews": previews,
+        "config": config.to_dict(),
+    }
+    if metrics is not None:
+        report["metrics"] = metrics
+    return report
+
+
+def finish_run(model, dataset, data_dir, out_dir, config, device, state, history: dict, *, name: str) -> dict:
+    """The end of a run (method.md §7): cleanup, the output files, test-view renders and
+    previews, metrics against ``gt.obj`` when the dataset has one, and the report.
+
+    Args:
+        model: the :class:`holowarp.tetgs.TetGaussians` after the main loop (modified: it
+            follows the cleanup).
+        state: the run's :class:`holowarp.runstate.RunState` (its stage timings grow).
+        history: the loss history by stage, for the loss-curve preview.
+        name: the object's prim name in ``scene.usda``.
+    """
+    from pathlib import Path
+
+    import torch
+
+    from holowarp.previews import preview_cutaway, preview_losses, preview_test_views
+    from holowarp.stages.cleanup import cleanup
+    from holowarp.stages.export import render_test_views, write_outputs
+
+    t0 = time.perf_counter()
+    clean, kept, cinfo = cleanup(model.mesh(), config.cleanup)
+    model.apply_cleanup(kept, clean)
+    state.add_time("cleanup", time.perf_counter() - t0, 0)
+
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir)
+    outputs = write_outputs(out_dir, model, clean, name=name)
+    test = dataset.test_idx if len(dataset.test_idx) else dataset.train_idx[:4]
+    renders = render_test_views(model, dataset, test, background=torch.zeros(3, device=device))
+    gts = list(dataset.composite((0.0, 0.0, 0.0))[test])
+    psnr, ssim, per_view = image_metrics(renders, gts)
+    prev = out_dir / "previews"
+    previews = {
+        "test_views": preview_test_views(prev, renders, gts, test, psnrs=per_view),
+        "cutaway": preview_cutaway(prev / "cutaway_components.png", clean),
+        "losses": preview_losses(prev / "losses.png", history),
+    }
+    state.add_time("export", time.perf_counter() - t0, 0)
+
+    metrics = None
+    if dataset.gt_mesh is not None and Path(dataset.gt_mesh).is_file():
+        from holowarp.metrics import evaluate_mesh
+
+        t0 = time.perf_counter()
+        metrics = evaluate_mesh(clean, dataset.gt_mesh, dataset=dataset, device=str(device))
+        state.add_time("evaluate", time.perf_counter() - t0, 0)
+    return build_report(config=config, device=device, data_dir=data_dir, dataset=dataset, state=state, clean=clean,
+                        cleanup_info=cinfo, psnr=psnr, ssim=ssim, outputs=outputs, previews=previews, metrics=metrics)

@@ -1,0 +1,53 @@
+"""Independent NumPy references the tests check holowarp's kernels against."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def bilinear_masks(points: np.ndarray, dataset, views):
+    """Mask values (P, len(views)) at the projections of world ``points`` (P, 3), bilinear with
+    pixel centres at x + 0.5, and (P, len(views)) bool: the view sees the point (in front of
+    the camera, inside the image). The reference of :mod:`holowarp.ops.carve`."""
+    P = np.asarray(points, dtype=np.float64)
+    vals = np.zeros((len(P), len(views)))
+    seen = np.zeros((len(P), len(views)), dtype=bool)
+    H, W = dataset.height, dataset.width
+    for j, v in enumerate(views):
+        Vm, K = dataset.viewmats[v], dataset.K[v]
+        pc = P @ Vm[:3, :3].T + Vm[:3, 3]
+        z = pc[:, 2]
+        ok = z > 1e-6
+        zs = np.where(ok, z, 1.0)
+        x = K[0, 0] * pc[:, 0] / zs + K[0, 1] * pc[:, 1] / zs + K[0, 2]
+        y = K[1, 1] * pc[:, 1] / zs + K[1, 2]
+        ok &= (x >= 0) & (x <= W) & (y >= 0) & (y <= H)
+        fx = np.clip(x - 0.5, 0, W - 1)
+        fy = np.clip(y - 0.5, 0, H - 1)
+        x0 = np.floor(fx).astype(np.int64)
+        y0 = np.floor(fy).astype(np.int64)
+        x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+        ax, ay = fx - x0, fy - y0
+        m = dataset.masks[v]
+        top = m[y0, x0] * (1 - ax) + m[y0, x1] * ax
+        bot = m[y1, x0] * (1 - ax) + m[y1, x1] * ax
+        vals[:, j] = np.where(ok, top * (1 - ay) + bot * ay, 0.0)
+        seen[:, j] = ok
+    return vals, seen
+
+
+def pixel_rays(viewmat: np.ndarray, K: np.ndarray, width: int, height: int):
+    """World-space rays through every pixel centre of an OpenCV camera.
+
+    Returns:
+        origin (3,), directions (H, W, 3) unit vectors, and ``z_per_t`` (H, W): camera depth
+        gained per unit distance along the ray (so depth = t * z_per_t).
+    """
+    xs = np.arange(width) + 0.5
+    ys = np.arange(height) + 0.5
+    u, v = np.meshgrid(xs, ys)
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    d_cam = d_cam / np.linalg.norm(d_cam, axis=-1, keepdims=True)
+    R = viewmat[:3, :3]
+    origin = -R.T @ viewmat[:3, 3]
+    return origin, d_cam @ R, d_cam[..., 2]
