@@ -3,6 +3,11 @@
 The output format follows OUT's extension: ``.vtu``, ``.msh``, ``.npz``, ``.usd``/``.usda``/
 ``.usdc`` (tet mesh + surface + physics material), or ``.obj``/``.ply`` (the outward
 boundary surface only). IN is any tet-mesh format (``.vtu``, ``.msh``, ``.npz``, USD).
+
+Orientation (holowarp's convention: ``det[b-a, c-a, d-a] > 0``): a mesh whose tets are all
+negative (raw TetGen/fTetWild winding) is re-oriented and the summary says so; a mesh with
+some negative tets is refused unless ``--orient`` flips them; zero-volume tets and meshes
+without tets are errors.
 """
 
 from __future__ import annotations
@@ -11,28 +16,29 @@ import sys
 from pathlib import Path
 
 from holowarp import cli
-from holowarp.mesh_io import TET_FORMATS, MeshIOError, read_tetmesh, write_tetmesh
+from holowarp.fileio import check_output_file
+from holowarp.mesh_io import TET_FORMATS, MeshIOError, load_tetmesh, write_tetmesh
 from holowarp.surface_io import SURFACE_WRITE_FORMATS, write_surface
 
 __all__ = ["convert", "main", "build_parser"]
 
 
 def convert(src, dst, *, orient: bool = False, material=None) -> dict:
-    """Read ``src`` and write ``dst`` (format by extension). Returns a summary dict.
+    """Read ``src`` and write ``dst`` (format by extension). Returns a summary dict with
+    ``reoriented`` (tets flipped because all were negative) and ``flipped`` (by ``orient``).
 
     Args:
-        orient: reorder inverted tets before writing (their count is reported).
+        orient: flip the negative tets of a mixed-orientation mesh (else it is an error).
         material: :class:`holowarp.usd.PhysicsMaterial` for USD outputs.
     """
+    check_output_file(dst, what="OUT")
     ext = Path(dst).suffix.lower()
     if ext not in TET_FORMATS + SURFACE_WRITE_FORMATS:
         raise MeshIOError(
             f"{dst}: unknown output extension {ext!r}; use one of {', '.join(TET_FORMATS + SURFACE_WRITE_FORMATS)}"
         )
-    mesh = read_tetmesh(src)
-    flipped = 0
-    if orient:
-        mesh, flipped = mesh.oriented()
+    mesh, oinfo = load_tetmesh(src, fix_orientation=orient)
+    flipped = oinfo["flipped"]
     if ext in SURFACE_WRITE_FORMATS:
         write_surface(dst, mesh)
     elif ext in (".usd", ".usda", ".usdc"):
@@ -40,7 +46,7 @@ def convert(src, dst, *, orient: bool = False, material=None) -> dict:
     else:
         write_tetmesh(dst, mesh)
     info = mesh.summary()
-    info["flipped"] = flipped
+    info.update(flipped=flipped, reoriented=oinfo["reoriented"])
     return info
 
 
@@ -50,7 +56,8 @@ def build_parser():
     p.add_argument("src", metavar="IN", help="input tet mesh (" + ", ".join(TET_FORMATS) + ")")
     p.add_argument("dst", metavar="OUT", help="output file; its extension picks the format ("
                    + ", ".join(TET_FORMATS + SURFACE_WRITE_FORMATS) + ")")
-    p.add_argument("--orient", action="store_true", help="reorder inverted tets before writing")
+    p.add_argument("--orient", action="store_true",
+                   help="flip the negative tets of a mixed-orientation mesh (without it such a mesh is refused)")
     p.add_argument("--youngs-modulus", type=float, default=None, metavar="PA", help="USD physics material E [Pa] (> 0)")
     p.add_argument("--poissons-ratio", type=float, default=None, metavar="NU",
                    help="USD physics material nu, in [0, 0.5)")
@@ -87,6 +94,7 @@ def _run(args) -> int:
         f"{info['boundary_faces']} boundary faces, {info['components']} component(s), "
         f"manifold={info['manifold']}, genus={info['genus']}, inverted={info['inverted']}"
         + (f", flipped={info['flipped']}" if args.orient else "")
+        + (f"; re-oriented all {info['reoriented']} tets (the file used the opposite winding)" if info["reoriented"] else "")
     )
     return 0
 

@@ -13,7 +13,9 @@ a command catches these two and nothing else.
 
 from __future__ import annotations
 
-__all__ = ["InputError", "RunError", "one_line"]
+import re
+
+__all__ = ["InputError", "RunError", "one_line", "pxr_reason"]
 
 
 class InputError(ValueError):
@@ -30,3 +32,15 @@ def one_line(message: object) -> str:
     with ``" | "``, with runs of whitespace collapsed."""
     lines = [" ".join(part.split()) for part in str(message).splitlines()]
     return " | ".join(x for x in lines if x)
+
+
+_PXR_ERROR = re.compile(r"Error in '[^']*' at line \d+ in file [^:]*: '(.*?)'\s*$", re.M | re.S)
+
+
+def pxr_reason(exc: BaseException) -> str:
+    """The human part of a pxr (USD) error: pxr raises ``Tf.ErrorException`` whose text is one
+    block per C++ frame, "Error in '<function>' at line N in file <source> : '<message>'"; keep
+    the messages only, in order, joined with "; "."""
+    text = str(exc)
+    found = [" ".join(m.split()) for m in _PXR_ERROR.findall(text)]
+    return "; ".join(found) if found else one_line(text)

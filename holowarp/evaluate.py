@@ -99,8 +99,13 @@ def _run(args) -> int:
     from holowarp.fileio import atomic_write_json
     from holowarp.metrics import EvaluationError, evaluate_mesh
 
+    from holowarp.fileio import check_output_file
+
     if args.samples < 1:
         cli.fail(f"--samples must be >= 1, got {args.samples}")
+    for flag, path in (("--json", args.json), ("--details", args.details)):
+        if path is not None:
+            check_output_file(path, what=flag)
     if args.volume_points < 1:
         cli.fail(f"--volume-points must be >= 1, got {args.volume_points}")
     dataset = None

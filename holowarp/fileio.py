@@ -15,7 +15,16 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["atomic_path", "atomic_write_text", "atomic_write_json", "atomic_save_npz", "check_input_file", "quiet_stdio"]
+__all__ = [
+    "atomic_path",
+    "atomic_write_text",
+    "atomic_write_json",
+    "atomic_save_npz",
+    "check_input_file",
+    "check_output_dir",
+    "check_output_file",
+    "quiet_stdio",
+]
 
 
 @contextlib.contextmanager
@@ -107,3 +116,52 @@ def quiet_stdio():
     """Silence Python-level stdout/stderr chatter of third-party readers (meshio, trimesh)."""
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         yield
+
+
+def _writable_ancestor(path: Path, what: str, named: Path | None = None) -> Path:
+    """The nearest existing ancestor of ``path``: it must be a folder we can create files in
+    (errors name ``named``, default ``path``)."""
+    from holowarp.errors import InputError
+
+    named = path if named is None else named
+    anc = path
+    while not anc.exists():
+        if anc.parent == anc:
+            break
+        anc = anc.parent
+    if not anc.is_dir():
+        raise InputError(f"{what} {named}: {anc} is a file, so {named} cannot be created")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".holowarp-write-test.", dir=anc)
+    except OSError as e:
+        raise InputError(f"{what} {named}: cannot write into {anc} ({e.strerror})") from None
+    os.close(fd)
+    os.unlink(probe)
+    return anc
+
+
+def check_output_dir(path: str | os.PathLike, *, what: str = "--out") -> Path:
+    """``path`` as a :class:`Path` if it is (or can be created as) a writable folder; otherwise
+    :class:`holowarp.errors.InputError` naming ``what`` and the reason. Call it before any work,
+    so a bad output path fails in a second, not after an hour of computing."""
+    from holowarp.errors import InputError
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{what} {path}: is a file, expected a folder")
+    _writable_ancestor(path, what)
+    return path
+
+
+def check_output_file(path: str | os.PathLike, *, what: str = "output") -> Path:
+    """``path`` as a :class:`Path` if a file can be written there (its folder exists or can be
+    created, and is writable; ``path`` is not a folder); otherwise an InputError."""
+    from holowarp.errors import InputError
+
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{what} {path}: is a folder, expected a file path")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise InputError(f"{what} {path}: the file exists and is not writable")
+    _writable_ancestor(path.parent, what, named=path)
+    return path

@@ -21,13 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from holowarp.errors import InputError
+from holowarp.errors import InputError, pxr_reason
 from holowarp.fileio import atomic_path, check_input_file
 from holowarp.fileio import quiet_stdio as _quiet
 from holowarp.surface_io import SURFACE_READ_FORMATS
 from holowarp.tetmesh import TetMesh, TetMeshError
 
-__all__ = ["MeshIOError", "TET_FORMATS", "read_tetmesh", "write_tetmesh"]
+__all__ = ["MeshIOError", "TET_FORMATS", "ZERO_VOLUME_REL", "load_tetmesh", "read_tetmesh", "write_tetmesh"]
 
 TET_FORMATS = (".vtu", ".msh", ".npz", ".usd", ".usda", ".usdc")
 
@@ -107,7 +107,7 @@ def read_tetmesh(path: str | os.PathLike) -> TetMesh:
             msg = str(e)
             raise MeshIOError(msg if msg.startswith(str(path)) else f"{path}: {msg}") from None
         except Exception as e:  # pxr raises Tf.ErrorException on parse errors
-            raise MeshIOError(f"{path}: not a readable USD stage ({type(e).__name__}: {e})") from None
+            raise MeshIOError(f"{path}: not a readable USD stage ({pxr_reason(e)})") from None
 
     import meshio
 
@@ -117,7 +117,9 @@ def read_tetmesh(path: str | os.PathLike) -> TetMesh:
     except IndexError as e:
         # meshio's Gmsh reader maps node tags through a table: a tag beyond it lands here.
         raise MeshIOError(f"{path}: element indices out of range, they reference missing nodes ({e})") from None
-    except (Exception, SystemExit) as e:  # meshio calls sys.exit() on some malformed files
+    except SystemExit:  # meshio prints its reason and calls sys.exit() on some malformed files
+        raise MeshIOError(f"{path}: cannot parse as {ext} (malformed or truncated file)") from None
+    except Exception as e:
         raise MeshIOError(f"{path}: cannot parse as {ext} ({type(e).__name__}: {e})") from None
     kinds = [c.type for c in m.cells]
     other = sorted({k for k in kinds if k in _OTHER_VOLUME_CELLS})
@@ -164,3 +166,44 @@ def write_tetmesh(path: str | os.PathLike, mesh: TetMesh, **usd_kwargs) -> Path:
             else:
                 meshio.write(tmp, m, file_format="vtu", binary=True, compression="zlib")
     return path
+
+
+#: Tets whose |volume| is below this fraction of the bounding-box diagonal cubed are
+#: degenerate (zero volume up to round-off).
+ZERO_VOLUME_REL = 1e-12
+
+
+def load_tetmesh(path: str | os.PathLike, *, fix_orientation: bool = False, allow_mixed: bool = False):
+    """Read a tet mesh for use, with its orientation checked (method.md §7b).
+
+    - no tets, or a tet of zero volume: :class:`MeshIOError` naming the first such tet;
+    - every tet negative (the winding of raw TetGen/fTetWild output): re-oriented, and
+      ``info["reoriented"]`` says how many were flipped;
+    - some tets negative: an error unless ``fix_orientation`` (they are flipped and counted in
+      ``info["flipped"]``) or ``allow_mixed`` (kept as they are, e.g. to measure them).
+
+    Returns:
+        (mesh, info) with ``info = {"tets", "reoriented", "flipped", "inverted"}``.
+    """
+    mesh = read_tetmesh(path)
+    if mesh.num_tets == 0:
+        raise MeshIOError(f"{path}: the mesh has no tetrahedra")
+    vol = mesh.signed_volumes()
+    diag = float(np.linalg.norm(np.ptp(mesh.vertices[np.unique(mesh.tets)], axis=0)))
+    flat = np.abs(vol) <= ZERO_VOLUME_REL * max(diag, 1e-300) ** 3
+    if flat.any():
+        i = int(np.argmax(flat))
+        raise MeshIOError(f"{path}: {int(flat.sum())} tets have zero volume (first: tet {i} = {mesh.tets[i].tolist()}); "
+                          "degenerate elements cannot be simulated or oriented")
+    neg = vol < 0
+    info = {"tets": mesh.num_tets, "reoriented": 0, "flipped": 0, "inverted": int(neg.sum())}
+    if neg.all():
+        mesh, n = mesh.oriented()
+        info.update(reoriented=n, inverted=0)
+    elif neg.any() and fix_orientation:
+        mesh, n = mesh.oriented()
+        info.update(flipped=n, inverted=0)
+    elif neg.any() and not allow_mixed:
+        raise MeshIOError(f"{path}: mixed orientation, {int(neg.sum())} of {mesh.num_tets} tets have negative volume "
+                          f"(first: tet {int(np.argmax(neg))}); pass --orient to flip them")
+    return mesh, info

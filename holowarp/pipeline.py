@@ -19,7 +19,7 @@ import torch
 
 from holowarp.config import GaussianStep, MeshBlock, Prune, ReconConfig
 from holowarp.device import resolve_device
-from holowarp.fileio import atomic_write_json
+from holowarp.fileio import atomic_write_json, check_output_dir
 from holowarp.preflight import ReconstructionError, prepare_dataset
 from holowarp.progress import Bars, say
 from holowarp.report import finish_run, peak_rss_mb
@@ -59,7 +59,7 @@ def reconstruct(dataset_path=None, out_dir="runs/holowarp", *, config: ReconConf
     t_start = time.perf_counter()
     device = resolve_device(device)
     config.schedule.validate()
-    out_dir = Path(out_dir)
+    out_dir = check_output_dir(out_dir)
     ckpt = Checkpoint.load(out_dir)
     check_resume(out_dir, ckpt, config.to_dict(), dataset_path, resume=resume)
     dataset, data_dir = prepare_dataset(dataset_path, out_dir, config, device=device, progress=progress,

@@ -43,7 +43,7 @@ import numpy as np
 
 from holowarp.camera import FOV_DEG, fibonacci_sphere, intrinsics_from_fov, look_at, viewmat_to_opengl_c2w
 from holowarp.errors import InputError
-from holowarp.fileio import atomic_path, atomic_save_npz, atomic_write_json
+from holowarp.fileio import atomic_path, atomic_save_npz, atomic_write_json, check_output_dir
 from holowarp.frame import FrameError, unit_cube_transform
 
 __all__ = [
@@ -288,7 +288,7 @@ def synthesize(
     from holowarp.surface_io import write_surface
 
     t0 = time.perf_counter()
-    mesh_path, out = Path(mesh_path), Path(out_dir)
+    mesh_path, out = Path(mesh_path), check_output_dir(out_dir)
     _check_args(out, views=views, res=res, test_every=test_every, supersample=supersample, fov_deg=fov_deg,
                 resume=resume, overwrite=overwrite, up_axis=up_axis)
     obj, R, scale, translation = _normalised_mesh(mesh_path, up_axis)

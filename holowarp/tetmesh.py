@@ -107,8 +107,9 @@ class TetMesh:
                 if not np.all(np.mod(t, 1) == 0):
                     raise TetMeshError("tets must hold integer vertex indices")
             if not np.all(np.isfinite(v)):
-                bad = int(np.count_nonzero(~np.isfinite(v).all(axis=1)))
-                raise TetMeshError(f"{bad} vertices have non-finite coordinates")
+                rows = np.flatnonzero(~np.isfinite(v).all(axis=1))
+                raise TetMeshError(f"{len(rows)} vertices have non-finite coordinates (first: vertex {int(rows[0])} = "
+                                   f"{v[rows[0]].tolist()})")
             if t.size:
                 lo, hi = int(t.min()), int(t.max())
                 if lo < 0 or hi >= len(v):

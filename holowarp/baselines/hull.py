@@ -245,9 +245,11 @@ def run_visual_hull(dataset, out_dir: str | os.PathLike, *, grid: int = 128, set
     from holowarp.mesh_io import write_tetmesh
     from holowarp.surface_io import write_surface
 
+    from holowarp.fileio import check_output_dir
+
+    out = check_output_dir(out_dir)
     src = str(dataset) if isinstance(dataset, (str, os.PathLike)) else str(getattr(dataset, "root", ""))
     mesh, info = visual_hull(dataset, grid=grid, settings=settings, device=device, progress=progress, return_info=True)
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     V, F = info.pop("hull_surface")
     write_tetmesh(out / "tetmesh.vtu", mesh)

@@ -32,6 +32,13 @@ def build_parser():
 def _run(args) -> int:
     from holowarp.data.loaders import load_dataset
 
+    if args.grid < 8:
+        cli.fail(f"--grid {args.grid}: at least 8 carving nodes are needed")
+    if not 0 < args.edge_length_fac < 1:
+        cli.fail(f"--edge-length-fac {args.edge_length_fac}: must lie in (0, 1)")
+    if args.max_surface_faces < 100:
+        cli.fail(f"--max-surface-faces {args.max_surface_faces}: must be >= 100")
+
     ds = load_dataset(args.dataset, res=args.res)
     st = VisualHullSettings(grid=args.grid, edge_length_fac=args.edge_length_fac, max_surface_faces=args.max_surface_faces)
     rep = run_visual_hull(ds, args.out, settings=st, device=args.device, progress=not args.quiet)

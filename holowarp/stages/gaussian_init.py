@@ -36,7 +36,7 @@ from holowarp.carve import sample_points_in_hull
 from holowarp.config import Stage0Config, Stage0Schedule
 from holowarp.data.dataset import Dataset, DatasetError
 from holowarp.device import resolve_device
-from holowarp.fileio import atomic_path, atomic_write_json
+from holowarp.fileio import atomic_path, atomic_write_json, check_output_dir
 from holowarp.gaussians import GaussianModel
 from holowarp.losses import (
     depth_to_normal,
@@ -285,7 +285,7 @@ def train_gs2d(
     if iters < 0:
         raise ValueError(f"stage 0: iters must be >= 0, got {iters}")
     dev = resolve_device(device)
-    out = Path(out_dir)
+    out = check_output_dir(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     train_idx = _train_views(dataset)
     if len(train_idx) == 0:
