@@ -13,22 +13,37 @@ Frames are written at 60 per second (USD time code k = frame k = time k/60 s); t
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from holowarp.sim.analysis import pieces_apart
-from holowarp.sim.run import FPS, run_scene
+from holowarp.errors import InputError
+from holowarp.sim.analysis import center_of_mass, pieces_apart
+from holowarp.sim.run import FPS, NonFiniteStateError, run_scene
 from holowarp.sim.scene import load_scene, placement_transform
 from holowarp.tetmesh import TetMesh
 
-__all__ = ["SimulationError", "FPS", "CHAMFER_TIMES", "simulate", "load_sim_mesh", "render_frames"]
+__all__ = ["SimulationError", "NonFiniteStateError", "FPS", "CHAMFER_TIMES", "MESH_FORMATS_HELP", "simulate",
+           "load_sim_mesh", "render_frames"]
+
+
+def _formats_help() -> str:
+    from holowarp.mesh_io import TET_FORMATS
+    from holowarp.surface_io import SURFACE_READ_FORMATS
+
+    return (f"a tet mesh ({', '.join(TET_FORMATS)}) or a closed surface ({', '.join(SURFACE_READ_FORMATS)}; "
+            "welded and tetrahedralised with fTetWild)")
+
+
+#: The mesh files the application reads (for help texts).
+MESH_FORMATS_HELP = _formats_help()
 
 #: Times (s) at which ``sim_chamfer`` is measured (method.md §10).
 CHAMFER_TIMES = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
-class SimulationError(ValueError):
+class SimulationError(InputError):
     """The inputs of a simulation cannot be used; the message names the file or argument."""
 
 
@@ -81,135 +96,202 @@ def _chamfer(mesh_a: TetMesh, xa, mesh_b: TetMesh, xb, to_eval, num_samples: int
     return chamfer_metrics(pa, na, pb, nb)["chamfer_l1"]
 
 
+def _mesh_of_bodies(meshes, bodies) -> TetMesh:
+    """One TetMesh holding the listed bodies' meshes (particle order of the model)."""
+    V, T, off = [], [], 0
+    for k in bodies:
+        V.append(meshes[k].vertices)
+        T.append(meshes[k].tets + off)
+        off += meshes[k].num_vertices
+    return TetMesh(np.concatenate(V), np.concatenate(T), validate=False)
+
+
+def _particles_of(model, bodies) -> np.ndarray:
+    return np.concatenate([np.arange(model.bodies[k].particle_start, model.bodies[k].particle_end) for k in bodies])
+
+
+def _warn_inverted(inverted, what: str) -> list[int]:
+    """Frames with inverted tets; says so on stderr (the report lists them too)."""
+    frames = [int(k) for k in np.flatnonzero(np.asarray(inverted) > 0)]
+    if frames:
+        worst = int(np.argmax(inverted))
+        print(f"warning: {what}: inverted tets in {len(frames)} of {len(inverted)} frames (frames "
+              f"{frames[0]}-{frames[-1]}; at most {int(inverted[worst])} at t = {worst / FPS:.3f} s; "
+              f"{int(inverted[-1])} at the end)", file=sys.stderr)
+    return frames
+
+
 def simulate(mesh, scene, *, device: str = "cpu", reference=None, out_dir=None, render_dir=None,
              progress: bool = True, chamfer_samples: int | None = None, name: str = "Object") -> dict:
     """Simulate a tet mesh in a scene and report (method.md §10).
 
     Args:
-        mesh: a :class:`TetMesh` or a mesh file (any tet format; a surface is tetrahedralised).
+        mesh: a :class:`TetMesh` or a mesh file (any tet format; a surface is tetrahedralised):
+            the scene's body, or every ``[[bodies]]`` entry without a ``mesh`` of its own.
         scene: ``"drop"``, ``"compress"``, a ``.toml`` path, or a :class:`Scene`.
         device: ``"cpu"`` or ``"cuda[:N]"``.
         reference: optional ground-truth mesh (tet file, or a closed surface that is
-            tetrahedralised with fTetWild) simulated in the same scene and the same placement;
-            adds ``sim_chamfer``. The placement (and the evaluation frame) then come from the
-            reference's rest bounding box.
-        out_dir: if given, writes ``sim.usda`` and ``report.json`` there (atomically).
+            tetrahedralised with fTetWild) simulated in the same scene in place of ``mesh``,
+            with the same placement; adds ``sim_chamfer``. The placement (and the
+            evaluation frame) then come from the reference's rest bounding box.
+        out_dir: if given, writes ``sim.usda`` and ``report.json`` there (atomically; a run
+            that fails writes nothing, so earlier results stay).
         render_dir: if given, writes one PNG per frame there (pyvista, off screen).
-        progress: show a progress bar.
+        progress: show a progress bar (on stderr, and only when it is a terminal).
         chamfer_samples: surface samples per mesh for ``sim_chamfer`` (method.md §9: 100,000).
-        name: prim name of the body in USD.
+        name: prim name of the body in USD for a scene without ``[[bodies]]``.
 
     Returns:
-        The report dict: ``frames``, ``steps``, ``seconds``, ``steps_per_second``,
-        ``max_inverted``, ``min_volume_ratio``, ``max_volume_ratio``, ``com`` (per frame, m),
-        ``nan``, ``components_end`` (see :func:`holowarp.sim.analysis.pieces_apart`), and,
-        with a reference, ``sim_chamfer`` ({time s: Chamfer-L1 in the evaluation frame}),
-        plus context (scene, device, mesh size, the solver's step plan, per-frame volume
-        ratio, inverted counts and contact forces).
-    """
-    from tqdm.auto import tqdm
+        The report dict: ``frames``, ``steps``, ``seconds``, ``steps_per_second`` (of the
+        stepping loop), ``max_inverted``, ``min_volume_ratio``, ``max_volume_ratio``, ``com``
+        (per frame, m), ``nan`` (False: non-finite states raise), ``components_end`` (see
+        :func:`holowarp.sim.analysis.pieces_apart`), ``max_penetration`` (m, deepest contact
+        violation over all frames, see :meth:`SolverVBDNeoHookean.penetration`), and, with a
+        reference, ``sim_chamfer`` ({time s: Chamfer-L1 in the evaluation frame}), plus
+        context (scene, device, mesh size, bodies, the solver's step plan, per-frame volume
+        ratio, inverted counts, penetration and contact forces, ``inverted_frames``).
 
+    Raises:
+        SimulationError: a mesh cannot be used. SceneError, ModelError: bad scene or model.
+        NonFiniteStateError: the simulation produced non-finite positions (nothing written).
+    """
     from holowarp.device import resolve_device
-    from holowarp.metrics.surface import SurfaceMetricSettings
+    from holowarp.progress import bar, bars_enabled
 
     device = resolve_device(device)
     scene = load_scene(scene)
-    mesh = load_sim_mesh(mesh, what="mesh")
-    ref = load_sim_mesh(reference, what="reference") if reference is not None else None
-    transform = placement_transform((ref if ref is not None else mesh).vertices, scene.placement)
-
-    n_runs = 2 if ref is not None else 1
-    bar = tqdm(total=scene.num_steps * n_runs, desc=f"{scene.name}", unit="step", disable=not progress)
+    specs, meshes, ref, default, transforms = _load_bodies(mesh, scene, reference)
+    ref_meshes = [ref if sp.mesh is None else meshes[k] for k, sp in enumerate(specs)] if ref is not None else None
+    pbar = bar(scene.num_steps * (2 if ref is not None else 1), desc=scene.name, unit="step", progress=progress)
     try:
-        run = run_scene(scene, mesh, transform=transform, device=device, progress=bar)
+        run = run_scene(scene, meshes, transform=transforms, device=device, progress=pbar)
         ref_run = None
         if ref is not None:
-            ref_run = run_scene(scene, ref, transform=transform, device=device, progress=bar)
+            ref_run = run_scene(scene, ref_meshes, transform=transforms, device=device, progress=pbar)
     finally:
-        bar.close()
+        pbar.close()
 
-    model = run["model"]
-    rest_placed = model.rest_positions
-    placed_mesh = mesh.with_vertices(rest_placed)
-    V0 = model.rest_volume()
-    frames = run["frames"]
-    vol_ratio = run["volume"] / V0
-    comps, comp_info = pieces_apart(placed_mesh, frames[-1]) if not run["nan"] else (None, {})
-    report = {
-        "frames": int(len(frames)),
-        "steps": int(run["steps"]),
-        "seconds": float(run["seconds"]),
-        "steps_per_second": float(run["steps"] / run["seconds"]) if run["seconds"] > 0 else None,
-        "max_inverted": int(run["inverted"].max()),
-        "min_volume_ratio": float(np.nanmin(vol_ratio)),
-        "max_volume_ratio": float(np.nanmax(vol_ratio)),
-        "com": run["com"].tolist(),
-        "nan": bool(run["nan"]),
-        "components_end": comps,
-        "scene": scene.name,
-        "scene_file": scene.source,
-        "device": device,
-        "vertices": mesh.num_vertices,
-        "tets": mesh.num_tets,
-        "components_start": int(mesh.components()[1]),
-        "components_info": comp_info,
-        "dt": scene.sim.dt,
-        "plan": run["plan"].as_dict(),
-        "inverted_end": int(run["inverted"][-1]),
-        "inverted": run["inverted"].tolist(),
-        "volume_ratio": vol_ratio.tolist(),
-        "contact_force": {
-            sname: run["surface_force"][:, k].tolist()
-            for k, sname in enumerate((["Ground"] if model.ground is not None else []) + [p.name for p in model.plates])
-        },
-    }
-
+    report, placed_mesh = _report(scene, device, specs, meshes, run)
     if ref_run is not None:
-        from holowarp.metrics import unit_cube_transform
-
-        n = chamfer_samples or SurfaceMetricSettings().num_samples
-        s, t = unit_cube_transform(ref_run["model"].rest_positions)
-        to_eval = lambda x: np.asarray(x, np.float64) * s + t  # noqa: E731
-        sc = {}
-        for tc in CHAMFER_TIMES:
-            k = int(round(tc * FPS))
-            if k < len(frames) and k < len(ref_run["frames"]):
-                sc[f"{tc:g}"] = _chamfer(mesh, frames[k], ref, ref_run["frames"][k], to_eval, n, seed=k)
-        report["sim_chamfer"] = sc
-        report["reference"] = {"vertices": ref.num_vertices, "tets": ref.num_tets, "nan": bool(ref_run["nan"]),
-                               "max_inverted": int(ref_run["inverted"].max())}
-
+        _reference_report(report, run, ref_run, meshes, ref_meshes, default, chamfer_samples)
     if out_dir is not None:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        _write_usd(out_dir / "sim.usda", scene, run, placed_mesh, name,
-                   ref_run=ref_run, ref_mesh=ref)
         from holowarp.fileio import atomic_write_json
 
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        names = [name] if not scene.bodies else [sp.name for sp in specs]
+        _write_usd(out_dir / "sim.usda", scene, run, meshes, names, ref_run=ref_run, ref_meshes=ref_meshes)
         atomic_write_json(out_dir / "report.json", report)
     if render_dir is not None:
-        render_frames(render_dir, placed_mesh, frames, run["model"], run["surface_points"], progress=progress)
+        render_frames(render_dir, placed_mesh, run["frames"], run["model"], run["surface_points"],
+                      progress=bars_enabled(progress))
     return report
 
 
-def _write_usd(path, scene, run, placed_mesh, name, *, ref_run=None, ref_mesh=None):
+def _load_bodies(mesh, scene, reference):
+    """(body specs, one mesh per body, reference mesh or None, indices of the bodies that
+    use ``mesh``, placement transforms shared by both runs)."""
+    specs = scene.body_specs()
+    default = [k for k, sp in enumerate(specs) if sp.mesh is None]
+    main_mesh = load_sim_mesh(mesh, what="mesh") if default else None
+    meshes = [main_mesh if sp.mesh is None else load_sim_mesh(sp.mesh, what=f"{scene.source}: body {sp.name!r} mesh")
+              for sp in specs]
+    ref = load_sim_mesh(reference, what="reference") if reference is not None else None
+    if ref is not None and not default:
+        raise SimulationError(f"reference: every body of {scene.source} has its own mesh; the reference replaces "
+                              "the bodies without one, and there are none")
+    frame_mesh = ref if ref is not None else main_mesh
+    transforms = [placement_transform((frame_mesh if sp.mesh is None else meshes[k]).vertices, sp.placement)
+                  for k, sp in enumerate(specs)]
+    return specs, meshes, ref, default, transforms
+
+
+def _report(scene, device, specs, meshes, run) -> tuple[dict, TetMesh]:
+    """The report of one run (see :func:`simulate`) and the placed mesh of all bodies."""
+    model = run["model"]
+    whole = _mesh_of_bodies(meshes, range(len(specs)))
+    placed_mesh = whole.with_vertices(model.rest_positions)
+    frames = run["frames"]
+    vol_ratio = run["volume"] / model.rest_volume()
+    comps, comp_info = pieces_apart(placed_mesh, frames[-1])
+    bodies = []
+    for k, (sp, b) in enumerate(zip(specs, model.bodies)):
+        bm = placed_mesh.submesh(np.arange(b.tet_start, b.tet_end))
+        xb = frames[-1][b.particle_start:b.particle_end]
+        bodies.append({
+            "name": b.name, "mesh": sp.mesh, "vertices": meshes[k].num_vertices, "tets": meshes[k].num_tets,
+            "components_start": int(meshes[k].components()[1]), "components_end": pieces_apart(bm, xb)[0],
+            "com_end": center_of_mass(xb, model.masses[b.particle_start:b.particle_end]).tolist(),
+        })
+    report = {
+        "frames": int(len(frames)), "steps": int(run["steps"]), "seconds": float(run["seconds"]),
+        "steps_per_second": float(run["steps"] / run["seconds"]) if run["seconds"] > 0 else None,
+        "max_inverted": int(run["inverted"].max()),
+        "min_volume_ratio": float(np.nanmin(vol_ratio)), "max_volume_ratio": float(np.nanmax(vol_ratio)),
+        "com": run["com"].tolist(), "nan": bool(run["nan"]), "components_end": comps,
+        "max_penetration": float(run["penetration"].max()),
+        "scene": scene.name, "scene_file": scene.source, "device": device,
+        "vertices": int(whole.num_vertices), "tets": int(whole.num_tets),
+        "components_start": int(whole.components()[1]), "components_info": comp_info, "bodies": bodies,
+        "dt": scene.sim.dt, "plan": run["plan"].as_dict(),
+        "inverted_end": int(run["inverted"][-1]),
+        "inverted_frames": _warn_inverted(run["inverted"], f"scene {scene.name!r}"),
+        "inverted": run["inverted"].tolist(), "volume_ratio": vol_ratio.tolist(),
+        "penetration": run["penetration"].tolist(),
+        "contact_force": {sname: run["surface_force"][:, k].tolist() for k, sname in enumerate(model.surface_names)},
+    }
+    return report, placed_mesh
+
+
+def _reference_report(report, run, ref_run, meshes, ref_meshes, default, chamfer_samples) -> None:
+    """Add ``sim_chamfer`` (between the bodies that use the simulated mesh and the same bodies
+    made of the reference, in the reference's evaluation frame) and ``reference``."""
+    from holowarp.frame import unit_cube_transform
+    from holowarp.metrics.surface import SurfaceMetricSettings
+
+    n = chamfer_samples or SurfaceMetricSettings().num_samples
+    model, rmodel = run["model"], ref_run["model"]
+    ours_d, ref_d = _mesh_of_bodies(meshes, default), _mesh_of_bodies(ref_meshes, default)
+    pa_idx, pb_idx = _particles_of(model, default), _particles_of(rmodel, default)
+    s, t = unit_cube_transform(rmodel.rest_positions[pb_idx])
+    to_eval = lambda x: np.asarray(x, np.float64) * s + t  # noqa: E731
+    frames, rframes = run["frames"], ref_run["frames"]
+    sc = {}
+    for tc in CHAMFER_TIMES:
+        k = int(round(tc * FPS))
+        if k < len(frames) and k < len(rframes):
+            sc[f"{tc:g}"] = _chamfer(ours_d, frames[k][pa_idx], ref_d, rframes[k][pb_idx], to_eval, n, seed=k)
+    report["sim_chamfer"] = sc
+    ref = ref_meshes[default[0]]
+    report["reference"] = {"vertices": ref.num_vertices, "tets": ref.num_tets, "nan": bool(ref_run["nan"]),
+                           "max_inverted": int(ref_run["inverted"].max()),
+                           "inverted_frames": _warn_inverted(ref_run["inverted"], "reference"),
+                           "max_penetration": float(ref_run["penetration"].max())}
+
+
+def _write_usd(path, scene, run, meshes, names, *, ref_run=None, ref_meshes=None):
     from holowarp.usd import PhysicsMaterial, UsdSceneWriter
 
-    m = scene.material
-    mat = PhysicsMaterial(m.youngs_modulus, m.poissons_ratio, m.density, m.friction, m.friction)
-    w = UsdSceneWriter(path, fps=FPS)
-    w.add_tetmesh(name, placed_mesh, material=mat)
-    for k, x in enumerate(run["frames"]):
-        if np.all(np.isfinite(x)):
-            w.set_points(name, x, k)
-    if ref_run is not None:
-        rname = "Reference"
-        w.add_tetmesh(rname, ref_mesh.with_vertices(ref_run["model"].rest_positions), material=mat,
-                      color=(0.35, 0.55, 0.8))
-        for k, x in enumerate(ref_run["frames"]):
-            if np.all(np.isfinite(x)):
-                w.set_points(rname, x, k)
     model = run["model"]
+    w = UsdSceneWriter(path, fps=FPS)
+    specs = scene.body_specs()
+
+    def add_bodies(run_, meshes_, names_, **kw):
+        m_ = run_["model"]
+        for sp, b, mesh_, nm in zip(specs, m_.bodies, meshes_, names_):
+            mat = sp.material
+            pm = PhysicsMaterial(mat.youngs_modulus, mat.poissons_ratio, mat.density, mat.friction, mat.friction)
+            w.add_tetmesh(nm, mesh_.with_vertices(m_.rest_positions[b.particle_start:b.particle_end]), material=pm,
+                          **kw)
+            for f, x in enumerate(run_["frames"]):
+                xb = x[b.particle_start:b.particle_end]
+                if np.all(np.isfinite(xb)):
+                    w.set_points(nm, xb, f)
+
+    add_bodies(run, meshes, names)
+    if ref_run is not None:
+        ref_names = ["Reference"] if len(names) == 1 else [f"Reference{n}" for n in names]
+        add_bodies(ref_run, ref_meshes, ref_names, color=(0.35, 0.55, 0.8))
     if model.ground is not None:
         w.add_ground()
     for p in model.plates:

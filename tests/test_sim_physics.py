@@ -1,10 +1,13 @@
-"""Validation of the XPBD stable Neo-Hookean simulator (method.md §10) against independent
-oracles: NumPy references of the kernels, finite differences of the energy, closed-form
+"""Validation of the Vertex Block Descent stable Neo-Hookean simulator (method.md §10)
+against independent oracles: float64 NumPy references of the kernels (the block step, the
+energy and its gradient, closest points, contact detection, penetration), closed-form
 mechanics (free fall, self-weight of a hanging bar, uniaxial stress, Coulomb sliding) and
-invariants (rigid motions, volume, inversion recovery, pieces that hold together).
+invariants (rigid motions, descent of the incremental potential, volume, convergence with
+iterations, stability at the paper's settings, contact between bodies and pieces).
 
-Meshes are small structured boxes (``holowarp.primitives.box_tetmesh``) so the whole file
-runs in well under a minute on two CPU cores after the first kernel compile.
+Every test states the settings it runs at; the paper's are dt = 1/60 s, 1 substep and 16
+iterations. Meshes are small structured boxes (``holowarp.primitives.box_tetmesh``) so the
+file runs in about a minute on two CPU cores after the first kernel compile.
 """
 
 from __future__ import annotations
@@ -17,17 +20,22 @@ import pytest
 from holowarp.primitives import box_tetmesh
 from holowarp.sim import (
     GRAVITY,
+    ContactSettings,
     ModelBuilder,
-    SolverXPBDNeoHookean,
+    NonFiniteStateError,
+    SolverVBDNeoHookean,
     lame_parameters,
     load_scene,
     pieces_apart,
 )
+from holowarp.sim.model import stable_neo_hookean_parameters
 from holowarp.sim.run import run_scene
-from holowarp.sim.scene import placement_transform
+from holowarp.sim.scene import build_model, placement_transform
 from holowarp.tetmesh import TetMesh
 
 wp = pytest.importorskip("warp")
+
+DT = 1.0 / 60.0
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -38,13 +46,14 @@ def _warp():
 
 
 def _K():
-    from holowarp.kernels import sim_xpbd
+    from holowarp.kernels import sim_vbd
 
-    return sim_xpbd
+    return sim_vbd
 
 
-def _run(model, solver, steps, dt=1.0 / 60.0, *, record=None):
-    s0, s1, c = model.state(), model.state(), model.control()
+def _run(model, solver, steps, dt=DT, *, record=None, state=None):
+    s0 = state if state is not None else model.state()
+    s1, c = model.state(), model.control()
     out = []
     for k in range(steps):
         c.set_time(k * dt, (k + 1) * dt)
@@ -56,148 +65,186 @@ def _run(model, solver, steps, dt=1.0 / 60.0, *, record=None):
 
 
 def _scene(name, **changes):
+    """A built-in scene with ``section.key`` values replaced (``contact`` takes a ContactSettings)."""
     sc = load_scene(name)
     parts = {}
     for sec in ("sim", "material", "placement"):
         upd = {k.split(".", 1)[1]: v for k, v in changes.items() if k.startswith(sec + ".")}
         if upd:
             parts[sec] = dataclasses.replace(getattr(sc, sec), **upd)
+    if "contact" in changes:
+        parts["contact"] = changes["contact"]
     return dataclasses.replace(sc, **parts)
 
 
+def _join(*meshes) -> TetMesh:
+    """One mesh made of disjoint pieces (vertex indices offset, nothing shared)."""
+    V, T, off = [], [], 0
+    for m in meshes:
+        V.append(m.vertices)
+        T.append(m.tets + off)
+        off += m.num_vertices
+    return TetMesh(np.concatenate(V), np.concatenate(T))
+
+
 # ------------------------------------------------------------------ NumPy oracles
-def _np_grads(x, Dinv, gamma):
-    """C_D, C_H and their (4, 3) vertex gradients for one tet, float64."""
-    Ds = np.stack([x[1] - x[0], x[2] - x[0], x[3] - x[0]], axis=1)
-    F = Ds @ Dinv
-    cD = np.linalg.norm(F)
+def _deformation(x, X, tets):
+    Dm = np.stack([X[tets[:, k]] - X[tets[:, 0]] for k in (1, 2, 3)], axis=2)
+    Ds = np.stack([x[tets[:, k]] - x[tets[:, 0]] for k in (1, 2, 3)], axis=2)
+    return Ds @ np.linalg.inv(Dm), np.linalg.det(Dm) / 6.0
+
+
+def _psi(F, mu, lam):
+    """Smith et al. 2018 stable Neo-Hookean energy density minus its rest value, float64."""
+    mup, lamp = stable_neo_hookean_parameters(mu, lam)
+    alpha = 1.0 + 0.75 * mup / lamp
+    ic = np.einsum("tij,tij->t", F, F)
     J = np.linalg.det(F)
-    cof = np.stack([np.cross(F[:, 1], F[:, 2]), np.cross(F[:, 2], F[:, 0]), np.cross(F[:, 0], F[:, 1])], axis=1)
-    GD = (F / cD) @ Dinv.T
-    GH = cof @ Dinv.T
-    gD = np.vstack([-GD.sum(1), GD.T])
-    gH = np.vstack([-GH.sum(1), GH.T])
-    return cD, J - gamma, gD, gH
+    return (0.5 * mup * (ic - 3.0) + 0.5 * lamp * ((J - alpha) ** 2 - (1.0 - alpha) ** 2)
+            - 0.5 * mup * (np.log(ic + 1.0) - np.log(4.0)))
 
 
-def _np_energy(x, tets, Dinv, vol, mu, lam):
-    lamp = lam + mu
-    gamma = 1.0 + mu / lamp
+def _elastic_energy(model, x):
+    F, vol = _deformation(np.asarray(x, np.float64), model.rest_positions, model.tets)
+    return float((vol * _psi(F, model.tet_mu_host, model.tet_lambda_host)).sum())
+
+
+def _contact_energy(solver, x):
+    """The substep's vertex-triangle penalty energy (slots as detected by the solver)."""
+    if not solver.contacts_enabled:
+        return 0.0
+    c, m = solver._con, solver.model
+    cnt, tri, w, n, k = (a.numpy() for a in (c.slot_count, c.slot_tri, c.slot_w, c.slot_n, c.slot_k))
     e = 0.0
-    for t in range(len(tets)):
-        xt = x[tets[t]]
-        F = np.stack([xt[1] - xt[0], xt[2] - xt[0], xt[3] - xt[0]], axis=1) @ Dinv[t]
-        J = np.linalg.det(F)
-        psi = 0.5 * mu[t] * (np.sum(F * F) - 3.0) + 0.5 * lamp[t] * ((J - gamma[t]) ** 2 - (1 - gamma[t]) ** 2)
-        e += vol[t] * psi
+    for v in np.flatnonzero(cnt):
+        for s in range(cnt[v]):
+            p = (x[m.tris[tri[v, s]]] * w[v, s][:, None]).sum(0)
+            pen = solver.contact_radius - np.dot(x[v] - p, n[v, s])
+            e += 0.5 * k[v, s] * max(pen, 0.0) ** 2
     return e
 
 
-def _random_tets(rng, n):
-    """n random well-shaped tets (rest) and a random deformation of each."""
-    X = []
-    for _ in range(n):
-        while True:
-            p = rng.normal(size=(4, 3)) * 0.05
-            v = np.linalg.det(np.stack([p[1] - p[0], p[2] - p[0], p[3] - p[0]], 1)) / 6
-            if v > 2e-5:
-                X.append(p)
-                break
-    X = np.stack(X)
-    x = X + rng.normal(size=X.shape) * 0.004
-    return X, x
+def _potential(solver, x, h):
+    """Implicit Euler's incremental potential of the substep the solver just took, float64."""
+    m = solver.model
+    y = solver._inertia.numpy().astype(np.float64)
+    free = ~m.fixed
+    inertia = 0.5 / h**2 * float((m.masses[free] * ((x - y)[free] ** 2).sum(1)).sum())
+    return inertia + _elastic_energy(m, x) + _contact_energy(solver, x)
 
 
-def test_constraint_projection_matches_numpy_reference(rng):
-    """One coupled deviatoric + hydrostatic XPBD projection per tet equals the NumPy 2x2
-    solve with gradients that are themselves checked by central differences."""
+def _mechanical_energy(model, state, g=GRAVITY):
+    x, v = state.positions(), state.velocities()
+    return float(0.5 * (model.masses * (v**2).sum(1)).sum() + (model.masses * g * x[:, 2]).sum()
+                 + _elastic_energy(model, x))
+
+
+def _closest_point_numpy(p, a, b, c):
+    """Closest point of triangle abc to p: the best of the face projection (when inside)
+    and the three clamped edge projections."""
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n)
+    q = p - np.dot(p - a, n) * n
+    cands = []
+    T = np.stack([b - a, c - a], axis=1)
+    uv = np.linalg.lstsq(T, q - a, rcond=None)[0]
+    if uv.min() >= 0 and uv.sum() <= 1:
+        cands.append(q)
+    for s, e in ((a, b), (b, c), (c, a)):
+        t = np.clip(np.dot(p - s, e - s) / np.dot(e - s, e - s), 0.0, 1.0)
+        cands.append(s + t * (e - s))
+    cands = np.asarray(cands)
+    return cands[np.argmin(np.linalg.norm(cands - p, axis=1))]
+
+
+# ------------------------------------------------------------------ kernels vs oracles
+def test_vertex_block_step_lands_on_the_minimiser_of_the_quadratic_majoriser(rng):
+    """One block step of one vertex is x - H^-1 grad G with the exact gradient of the NumPy
+    potential G (central differences, float64) and the majoriser's Hessian
+    m/h^2 + sum V (3/2 mu' |b|^2 I + lambda' c c^T); that quadratic lies above G at random
+    points around the start (the bound the stability argument rests on), so G decreased."""
     K = _K()
-    n = 6
-    X, x = _random_tets(rng, n)
-    mu = rng.uniform(2e4, 8e4, n)
-    lam = rng.uniform(1e4, 3e5, n)
-    w = rng.uniform(10, 60, (n, 4))
-    h = 1.0 / 240.0
-    lam_prev = rng.normal(size=(n, 2)) * 1e-6
-    for t in range(n):
-        Dinv = np.linalg.inv(np.stack([X[t, 1] - X[t, 0], X[t, 2] - X[t, 0], X[t, 3] - X[t, 0]], 1))
-        V = 1.0 / (6.0 * np.linalg.det(Dinv))
-        lamp = lam[t] + mu[t]
-        gamma = 1 + mu[t] / lamp
-        cD, cH, gD, gH = _np_grads(x[t], Dinv, gamma)
-        eps = 1e-7
-        for k in range(4):
-            for d in range(3):
-                xp, xm = x[t].copy(), x[t].copy()
-                xp[k, d] += eps
-                xm[k, d] -= eps
-                a, b = _np_grads(xp, Dinv, gamma), _np_grads(xm, Dinv, gamma)
-                assert abs((a[0] - b[0]) / (2 * eps) - gD[k, d]) < 1e-5 * max(1, abs(gD[k, d]))
-                assert abs((a[1] - b[1]) / (2 * eps) - gH[k, d]) < 1e-5 * max(1, abs(gH[k, d]))
-        aD, aH = 1 / (mu[t] * V * h * h), 1 / (lamp * V * h * h)
-        W = w[t][:, None]
-        A = np.array([[np.sum(W * gD * gD) + aD, np.sum(W * gD * gH)], [np.sum(W * gD * gH), np.sum(W * gH * gH) + aH]])
-        b = np.array([-cD - aD * lam_prev[t, 0], -cH - aH * lam_prev[t, 1]])
-        dl = np.linalg.solve(A, b)
-        x_ref = x[t] + W * (gD * dl[0] + gH * dl[1])
-
-        q = wp.array(x[t].astype(np.float32), dtype=wp.vec3)
-        lams = wp.array(lam_prev[t : t + 1].astype(np.float32), dtype=wp.vec2)
-        z = wp.zeros(1, dtype=wp.vec3)
-        wp.launch(K.sim_solve_tets, dim=1, inputs=[
-            wp.array([0], dtype=wp.int32), 0, q, wp.array(w[t].astype(np.float32), dtype=float),
-            wp.array(np.array([[0, 1, 2, 3]], np.int32), dtype=wp.int32),
-            wp.array(Dinv[None].astype(np.float32), dtype=wp.mat33), wp.array([V], dtype=float),
-            wp.array([mu[t]], dtype=float), wp.array([lam[t]], dtype=float), wp.array([1.0], dtype=float),
-            lams, 0, 1 / h / h, q, z, z, z, 0.0, 1.0, 0, wp.zeros(1, dtype=float),
-            wp.zeros((4, 1), dtype=float), wp.zeros((4, 1), dtype=wp.vec3)])
-        step = np.abs(x_ref - x[t]).max()
-        assert np.abs(q.numpy() - x_ref).max() <= 2e-3 * step + 1e-7
-        np.testing.assert_allclose(lams.numpy()[0], lam_prev[t] + dl, rtol=2e-3, atol=1e-12)
-
-
-def test_fused_colour_sweep_equals_per_colour_launches():
-    """On the CPU one launch over the colour-sorted tets computes exactly what one launch
-    per colour computes (Warp's CPU backend runs a launch's threads in index order)."""
-    mesh = box_tetmesh((3, 3, 3), (0.1, 0.1, 0.1))
+    mesh = box_tetmesh((2, 2, 2), (0.1, 0.1, 0.1))
     b = ModelBuilder()
-    b.add_soft_mesh(mesh, pos=(0, 0, 0.05), youngs_modulus=2e5, poissons_ratio=0.4)
-    b.add_ground_plane()
+    b.add_soft_mesh(mesh, youngs_modulus=3e5, poissons_ratio=0.4)
     m = b.finalize()
-    assert m.color_count > 5
-    # no two tets of one colour share a vertex
-    order, offs = m.tet_color_order.numpy(), m.tet_color_offsets
-    for c in range(m.color_count):
-        verts = m.tets[order[offs[c]:offs[c + 1]]].reshape(-1)
-        assert len(np.unique(verts)) == len(verts)
-    outs = []
-    for fuse in (True, False):
-        sol = SolverXPBDNeoHookean(m, iterations=5, substeps=3, fuse_colors=fuse)
-        s, _ = _run(m, sol, 12)
-        outs.append((s.positions(), s.velocities()))
-    assert np.array_equal(outs[0][0], outs[1][0])
-    assert np.array_equal(outs[0][1], outs[1][1])
+    sol = SolverVBDNeoHookean(m, iterations=1)
+    i = 13  # the centre vertex: 24 tets around it
+    x = m.rest_positions + rng.normal(size=m.rest_positions.shape) * 0.006
+    y = x + rng.normal(size=x.shape) * 0.003
+    h = 1.0 / 60.0
+    q = wp.array(x.astype(np.float32), dtype=wp.vec3)
+    wp.launch(K.vbd_solve_vertices, dim=1, inputs=[
+        wp.array([i], dtype=wp.int32), 0, q, q, wp.array(y.astype(np.float32), dtype=wp.vec3), m.particle_mass,
+        m.particle_inv_mass, 1.0 / h**2, sol._tets, sol._surf, sol._con, sol._surf_force])
+    got = q.numpy()[i].astype(np.float64)
+
+    x32 = x.astype(np.float32).astype(np.float64)
+    y32 = y.astype(np.float32).astype(np.float64)
+    corner = np.flatnonzero(np.any(m.tets == i, axis=1))
+    tets = m.tets[corner]
+    mu, lam = m.tet_mu_host[0], m.tet_lambda_host[0]
+    mup, lamp = stable_neo_hookean_parameters(mu, lam)
+
+    def G(p):
+        z = x32.copy()
+        z[i] = p
+        F, v = _deformation(z, m.rest_positions, tets)
+        return 0.5 * m.masses[i] / h**2 * np.sum((p - y32[i]) ** 2) + float((v * _psi(F, mu, lam)).sum())
+
+    p0, e = x32[i], 1e-6
+    grad = np.array([(G(p0 + e * d) - G(p0 - e * d)) / (2 * e) for d in np.eye(3)])
+    F0, vol = _deformation(x32, m.rest_positions, tets)
+    Dinv = np.linalg.inv(np.stack([m.rest_positions[tets[:, k]] - m.rest_positions[tets[:, 0]] for k in (1, 2, 3)], 2))
+    grads = np.concatenate([-Dinv.sum(axis=1, keepdims=True), Dinv], axis=1)  # [T, 4, 3]
+    k_of = np.argmax(tets == i, axis=1)
+    bvec = grads[np.arange(len(tets)), k_of]  # [T, 3]
+    cof = np.linalg.det(F0)[:, None, None] * np.linalg.inv(F0).transpose(0, 2, 1)
+    c = np.einsum("tij,tj->ti", cof, bvec)
+    H = m.masses[i] / h**2 * np.eye(3) + np.einsum("t,tij->ij", vol * 1.5 * mup * (bvec**2).sum(1),
+                                                   np.broadcast_to(np.eye(3), (len(tets), 3, 3)))
+    H += np.einsum("t,ti,tj->ij", vol * lamp, c, c)
+    want = p0 - np.linalg.solve(H, grad)
+    step = np.linalg.norm(want - p0)
+    assert step > 1e-4
+    assert np.linalg.norm(got - want) < 2e-3 * step
+    for scale in (0.002, 0.01, 0.03):  # majorisation, near and far
+        for _ in range(5):
+            d = rng.normal(size=3) * scale
+            assert G(p0) + grad @ d + 0.5 * d @ H @ d >= G(p0 + d) - 1e-9 * abs(G(p0))
+    assert G(got) < G(p0)
+
+
+def test_closest_point_on_triangle_matches_numpy(rng):
+    K = _K()
+    n = 200
+    tri = rng.normal(size=(n, 3, 3))
+    p = rng.normal(size=(n, 3)) * 1.5
+    out = wp.zeros(n, dtype=wp.vec3)
+    wp.launch(K.vbd_closest_points, dim=n, inputs=[wp.array(p.astype(np.float32), dtype=wp.vec3),
+                                                    wp.array(tri.astype(np.float32), dtype=wp.vec3)], outputs=[out])
+    w = out.numpy().astype(np.float64)
+    assert np.all(w >= -1e-6) and np.allclose(w.sum(1), 1.0, atol=1e-5)
+    got = np.einsum("nk,nkd->nd", w, tri)
+    want = np.stack([_closest_point_numpy(p[k], *tri[k]) for k in range(n)])
+    np.testing.assert_allclose(got, want, atol=2e-5)
 
 
 def test_elastic_forces_match_finite_differences_of_energy(rng):
-    """sim_tet_forces: energy equals a float64 NumPy evaluation and forces are minus its
+    """sim_tet_forces: energy equals the float64 NumPy Smith energy and forces are minus its
     central-difference gradient."""
     mesh = box_tetmesh((2, 1, 1), (0.2, 0.1, 0.1))
     b = ModelBuilder(gravity=(0, 0, 0))
     b.add_soft_mesh(mesh, youngs_modulus=1e5, poissons_ratio=0.3)
     m = b.finalize()
-    sol = SolverXPBDNeoHookean(m)
+    sol = SolverVBDNeoHookean(m)
     s = m.state()
     x = m.rest_positions + rng.normal(size=m.rest_positions.shape) * 0.01
     s.particle_q.assign(x.astype(np.float32))
     f, e = sol.elastic_forces(s)
     x32 = x.astype(np.float32).astype(np.float64)
-    T = m.tets
-    X = m.rest_positions
-    Dinv = np.linalg.inv(np.stack([X[T[:, 1]] - X[T[:, 0]], X[T[:, 2]] - X[T[:, 0]], X[T[:, 3]] - X[T[:, 0]]], 2))
-    args = (T, Dinv, m.tet_volume_host, m.tet_mu_host, m.tet_lambda_host)
-    e_ref = _np_energy(x32, *args)
-    assert abs(e - e_ref) <= 1e-3 * abs(e_ref)
+    e_ref = _elastic_energy(m, x32)
+    assert abs(e - e_ref) <= 2e-3 * abs(e_ref)
     g = np.zeros_like(x32)
     eps = 1e-6
     for i in range(len(x32)):
@@ -205,17 +252,65 @@ def test_elastic_forces_match_finite_differences_of_energy(rng):
             xp, xm = x32.copy(), x32.copy()
             xp[i, d] += eps
             xm[i, d] -= eps
-            g[i, d] = (_np_energy(xp, *args) - _np_energy(xm, *args)) / (2 * eps)
-    err = np.abs(f + g).max() / np.abs(g).max()
-    assert err < 2e-3, err
+            g[i, d] = (_elastic_energy(m, xp) - _elastic_energy(m, xm)) / (2 * eps)
+    assert np.abs(f + g).max() / np.abs(g).max() < 2e-3
 
 
-def test_tet_stats_count_inverted_tets_and_total_volume(rng):
+def test_stable_neo_hookean_linearises_to_the_lame_parameters(rng):
+    """The Hessian of psi at F = I (central differences, float64) is the linear-elastic
+    tensor lambda d_ij d_kl + mu (d_ik d_jl + d_il d_jk) for the Lamé parameters of E, nu."""
+    for E, nu in ((1e5, 0.0), (2e5, 0.3), (1e6, 0.45)):
+        mu, lam = lame_parameters(E, nu)
+        e = 1e-4
+        C = np.zeros((9, 9))
+        for a in range(9):
+            for c in range(9):
+                da, dc = np.eye(9)[a] * e, np.eye(9)[c] * e
+
+                def psi(d):
+                    return _psi((np.eye(3) + d.reshape(3, 3))[None], mu, lam)[0]
+
+                C[a, c] = (psi(da + dc) - psi(da - dc) - psi(dc - da) + psi(-da - dc)) / (4 * e * e)
+        d = np.eye(3)
+        want = (lam * np.einsum("ij,kl->ijkl", d, d) + mu * (np.einsum("ik,jl->ijkl", d, d)
+                                                             + np.einsum("il,jk->ijkl", d, d))).reshape(9, 9)
+        np.testing.assert_allclose(C, want, atol=1e-4 * (mu + lam))
+
+
+def test_vertex_colours_never_share_a_tet():
+    m = build_model(load_scene("drop"), box_tetmesh((3, 3, 3), (1.0, 1.0, 1.0), split=5))[0]
+    order, offs = m.particle_color_order.numpy(), m.particle_color_offsets
+    colour = np.empty(m.particle_count, np.int64)
+    for c in range(m.color_count):
+        colour[order[offs[c]:offs[c + 1]]] = c
+    assert sorted(order.tolist()) == list(range(m.particle_count))
+    t = colour[m.tets]
+    assert all(len(set(row)) == 4 for row in t.tolist())
+
+
+def test_fused_colour_sweep_equals_per_colour_launches():
+    """On the CPU one launch over the colour-sorted vertices computes exactly what one
+    launch per colour computes (Warp's CPU backend runs a launch's threads in index order)."""
+    mesh = box_tetmesh((3, 3, 3), (0.1, 0.1, 0.1))
+    b = ModelBuilder()
+    b.add_soft_mesh(mesh, pos=(0, 0, 0.05), youngs_modulus=2e5, poissons_ratio=0.4)
+    b.add_ground_plane()
+    m = b.finalize()
+    outs = []
+    for fuse in (True, False):
+        sol = SolverVBDNeoHookean(m, iterations=5, substeps=3, fuse_colors=fuse)
+        s, _ = _run(m, sol, 12)
+        outs.append((s.positions(), s.velocities()))
+    assert np.array_equal(outs[0][0], outs[1][0])
+    assert np.array_equal(outs[0][1], outs[1][1])
+
+
+def test_tet_stats_count_inverted_tets_and_total_volume():
     mesh = box_tetmesh((2, 2, 2), (1.0, 1.0, 1.0))
     b = ModelBuilder()
     b.add_soft_mesh(mesh)
     m = b.finalize()
-    sol = SolverXPBDNeoHookean(m)
+    sol = SolverVBDNeoHookean(m)
     s = m.state()
     x = m.rest_positions.copy()
     x[13] = [0.5, 0.5, 1.6]  # the centre vertex pulled out through the top: inverts tets
@@ -227,78 +322,144 @@ def test_tet_stats_count_inverted_tets_and_total_volume(rng):
     assert vol == pytest.approx(v.sum(), rel=1e-5)
 
 
-def test_finalize_applies_coulomb_friction_and_restitution():
-    """sim_finalize on hand-made particles: static friction cancels small slip, kinetic
-    friction removes mu * depth of a large slip, restitution reverses e * approach speed."""
-    K = _K()
-    h = 0.01
-    mu, e = 0.5, 0.5
-    # particle 0: slip 1 mm with depth 4 mm -> static; 1: slip 10 mm, depth 4 mm -> kinetic;
-    # 2: approach at -2 m/s, projected onto the ground -> bounce at +1 m/s.
-    q_start = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0.02]], np.float32)
-    q = np.array([[0.001, 0, 0], [0.010, 0, 0], [0, 0, 0.0]], np.float32)
-    qd_start = np.array([[0.1, 0, 0], [1.0, 0, 0], [0, 0, -2.0]], np.float32)
-    depth = np.array([[0.004], [0.004], [0.0]], np.float32)
-    qa = wp.array(q, dtype=wp.vec3)
-    qd_out = wp.zeros(3, dtype=wp.vec3)
-    force = wp.zeros(1, dtype=wp.vec3)
-    ground = wp.array(np.zeros((1, 3), np.float32), dtype=wp.vec3)
-    depth_a = wp.array(depth, dtype=float)
-    # particle 2 is 0 m above ground after prediction; put it 5 mm below to get a depth
-    q[2, 2] = -0.005
-    qa.assign(q)
-    wp.launch(K.sim_finalize, dim=3, inputs=[
-        qa, wp.array(q_start, dtype=wp.vec3), wp.array(qd_start, dtype=wp.vec3),
-        wp.array(np.ones(3, np.float32), dtype=float), wp.array(np.ones(3, np.float32), dtype=float),
-        wp.array(np.array([[0, 0, 1]], np.float32), dtype=wp.vec3), ground, ground, 0.0, 1.0,
-        wp.array([mu], dtype=float), wp.array([e], dtype=float), 1, depth_a, wp.zeros((3, 1), dtype=wp.vec3),
-        h, 0.2, 1.0, 1.0 / (h * h),
-    ], outputs=[qd_out, force])
-    x = qa.numpy()
-    v = qd_out.numpy()
-    np.testing.assert_allclose(x[0], [0, 0, 0], atol=1e-7)  # static: slip cancelled
-    np.testing.assert_allclose(x[1], [0.010 - mu * 0.004, 0, 0], atol=1e-7)  # kinetic
-    np.testing.assert_allclose(v[1], [(0.010 - mu * 0.004) / h, 0, 0], rtol=1e-5)
-    assert x[2, 2] == pytest.approx(0.0, abs=1e-7)
-    assert v[2, 2] == pytest.approx(e * 2.0, rel=1e-5)  # bounce
-    # contact force = m * (normal + friction corrections) / h^2 summed over particles
-    f = force.numpy()[0]
-    assert f[2] == pytest.approx((0.004 + 0.004 + 0.005) / h**2, rel=1e-4)
-    assert f[0] == pytest.approx(-(0.001 + mu * 0.004) / h**2, rel=1e-4)
+def _falling_pair(gap=0.004, v=-2.0, cells=(2, 2, 1)):
+    """A block falling at ``v`` m/s onto a resting one ``gap`` m below it (no gravity, no
+    ground, frictionless): the contact-only situation of an impact."""
+    lower = box_tetmesh(cells, (0.1, 0.1, 0.05))
+    upper = box_tetmesh(cells, (0.1, 0.1, 0.05), (0.0, 0.0, 0.05 + gap))
+    b = ModelBuilder(gravity=(0, 0, 0))
+    b.add_soft_mesh(lower, youngs_modulus=2e5, poissons_ratio=0.45, friction=0.0)
+    b.add_soft_mesh(upper, vel=(0, 0, v), youngs_modulus=2e5, poissons_ratio=0.45, friction=0.0)
+    return b.finalize(), lower.num_vertices
+
+
+def test_every_iteration_lowers_the_incremental_potential():
+    """Block coordinate descent with exact block minimisers (of a majoriser): the NumPy
+    potential of the substep (inertia + elasticity + contact penalty) after k iterations
+    never rises with k, with an impact under way (contacts of two bodies) and at rest."""
+    m, nl = _falling_pair()
+    s0 = m.state()
+    for _ in range(3):
+        Gs = []
+        for k in (1, 2, 3, 4, 6, 8, 12):
+            sol = SolverVBDNeoHookean(m, iterations=k)
+            s1 = m.state()
+            sol.step(s0, s1, m.control(), None, DT)
+            Gs.append(_potential(sol, s1.positions(), DT))
+        assert np.all(np.diff(Gs) <= 1e-6 * abs(Gs[0])), Gs
+        SolverVBDNeoHookean(m, iterations=16).step(s0, s1, m.control(), None, DT)
+        s0 = s1
+
+
+def test_contact_detection_finds_each_vertex_the_closest_triangle_of_the_other_body():
+    """Every surface vertex of one block within the detection distance of the other finds
+    that block's closest triangle (brute force over all of its triangles)."""
+    m, nl = _falling_pair(gap=0.004, v=-0.1)
+    sol = SolverVBDNeoHookean(m, iterations=1)
+    sol.step(m.state(), m.state(), m.control(), None, DT)
+    x = m.rest_positions
+    c = sol._con
+    cnt, tri, w = c.slot_count.numpy(), c.slot_tri.numpy(), c.slot_w.numpy()
+    pad = sol.contact_radius + sol.contact_margin
+    checked = 0
+    for v in m.surface_vertices.numpy():
+        other = m.tris[m.components[m.tris[:, 0]] != m.components[v]]
+        d = min(np.linalg.norm(_closest_point_numpy(x[v], *x[t]) - x[v]) for t in other)
+        if d < pad:
+            assert cnt[v] == 1
+            p = (x[m.tris[tri[v, 0]]] * w[v, 0][:, None]).sum(0)
+            assert np.linalg.norm(p - x[v]) == pytest.approx(d, abs=1e-6)
+            checked += 1
+    assert checked >= 18  # the facing faces of both blocks
+
+
+def test_penetration_is_the_depth_inside_the_other_body():
+    """Two axis-aligned blocks overlapping by 7 mm: the deepest surface vertex of one inside
+    the other lies 7 mm deep (analytic: distance to the box's nearest face)."""
+    lower = box_tetmesh((2, 2, 2), (0.1, 0.1, 0.1))
+    upper = box_tetmesh((3, 3, 2), (0.06, 0.06, 0.1), (0.02, 0.02, 0.093))
+    b = ModelBuilder()
+    b.add_soft_mesh(lower)
+    b.add_soft_mesh(upper)
+    b.add_ground_plane()
+    m = b.finalize()
+    s = m.state()
+    x = m.rest_positions.copy()
+    x[0, 2] = -0.002  # one particle 2 mm below the ground
+    s.particle_q.assign(x.astype(np.float32))
+    pen = SolverVBDNeoHookean(m).penetration(s)
+    nl = lower.num_vertices
+    lo_a, hi_a = np.zeros(3), np.full(3, 0.1)  # the lower block
+    lo_b, hi_b = np.array([0.02, 0.02, 0.093]), np.array([0.08, 0.08, 0.193])  # the upper block
+    depths = []
+    for z, lo, hi in ((x[nl:], lo_a, hi_a), (x[:nl], lo_b, hi_b)):
+        inside = np.all((z > lo + 1e-9) & (z < hi - 1e-9), axis=1)
+        depths += np.minimum(z[inside] - lo, hi - z[inside]).min(axis=1).tolist()
+    assert max(depths) == pytest.approx(0.007, abs=1e-9)
+    assert pen["bodies"] == pytest.approx(max(depths), abs=1e-6)
+    assert pen["surfaces"] == pytest.approx(0.002, abs=1e-6)
+    assert pen["max"] == pytest.approx(0.007, abs=1e-6) and pen["vertices_inside"] == len(depths)
 
 
 # ------------------------------------------------------------------ mechanics
-def test_rigid_motion_gives_zero_force(rng):
-    """A rotated and translated rest shape has zero elastic force and energy, and one solver
-    step at zero gravity moving rigidly keeps it rigid (no spurious deformation)."""
+def test_rigid_motion_gives_zero_force_and_keeps_momentum(rng):
+    """A rotated and translated rest shape has zero elastic force and energy; at zero
+    gravity a translating body stays exactly rigid and a spinning one keeps its linear
+    momentum, loses no more angular momentum than implicit Euler does and deforms only by
+    its centrifugal stretch (paper settings)."""
     mesh = box_tetmesh((2, 2, 3), (0.1, 0.1, 0.15))
     b = ModelBuilder(gravity=(0, 0, 0))
     b.add_soft_mesh(mesh, youngs_modulus=2e5, poissons_ratio=0.45)
     m = b.finalize()
-    sol = SolverXPBDNeoHookean(m, iterations=16, substeps=4)
+    sol = SolverVBDNeoHookean(m, iterations=16, substeps=1)
     q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
     R = q * np.sign(np.linalg.det(q))
-    x = m.rest_positions @ R.T + rng.normal(size=3)
+    x = m.rest_positions @ R.T + rng.normal(size=3) * 0.1
     s0 = m.state()
     s0.particle_q.assign(x.astype(np.float32))
     f, e = sol.elastic_forces(s0)
-    fs = m.tet_mu_host.max() * np.ptp(m.rest_positions, axis=0).max() ** 2  # N, a force of the material's scale
+    fs = m.tet_mu_host.max() * np.ptp(m.rest_positions, axis=0).max() ** 2  # a force of the material's scale
     assert np.abs(f).max() < 1e-4 * fs
     assert abs(e) < 1e-6 * fs * 0.1
-    # rigid translation velocity: after a step the shape is still the rigidly moved rest shape
+
+    def dist(z):
+        return np.linalg.norm(z[:, None] - z[None], axis=2)
+
     v = np.tile(rng.normal(size=3), (m.particle_count, 1))
     s0.particle_qd.assign(v.astype(np.float32))
-    s1 = m.state()
-    sol.step(s0, s1, m.control(), None, 1 / 60)
-    np.testing.assert_allclose(s1.positions(), x + v / 60, atol=2e-6)
-    np.testing.assert_allclose(s1.velocities(), v, atol=2e-4)
+    s, _ = _run(m, sol, 10, state=s0)
+    np.testing.assert_allclose(s.positions(), x + v * 10 * DT, atol=1e-5)  # float32 positions
+    np.testing.assert_allclose(dist(s.positions()), dist(x), atol=2e-6)
+
+    com = (m.masses[:, None] * x).sum(0) / m.masses.sum()
+    w = rng.normal(size=3) * 3.0  # rad/s
+    v = np.cross(w, x - com)
+    s0 = m.state()
+    s0.particle_q.assign(x.astype(np.float32))
+    s0.particle_qd.assign(v.astype(np.float32))
+
+    def momenta(st):
+        z, u = st.positions(), st.velocities()
+        c = (m.masses[:, None] * z).sum(0) / m.masses.sum()
+        return (m.masses[:, None] * u).sum(0), (m.masses[:, None] * np.cross(z - c, u)).sum(0)
+
+    p0, L0 = momenta(s0)
+    s, _ = _run(m, sol, 10, state=s0)
+    p1, L1 = momenta(s)
+    assert np.linalg.norm(p1 - p0) < 1e-4 * m.masses.sum() * np.abs(v).max()
+    # implicit Euler bleeds rotation (L changes by h sum v_{n+1} x m v_n per step) but never adds any
+    cos = L1 @ L0 / (np.linalg.norm(L1) * np.linalg.norm(L0))
+    assert 0.9 * np.linalg.norm(L0) < np.linalg.norm(L1) <= np.linalg.norm(L0) * (1 + 1e-4) and cos > 0.999
+    stretch = 1000.0 * np.dot(w, w) * 0.1**2 / 2e5  # rho w^2 L^2 / E: the centrifugal strain scale
+    assert np.abs(dist(s.positions()) - dist(x)).max() < 10 * stretch * 0.1
 
 
 def test_free_fall_follows_parabola_before_contact():
     """The centre of mass follows z0 - g t^2 / 2 to 1 % of the drop height until contact.
 
-    Symplectic Euler lags by g t h / 2 (h the substep), i.e. h / T of the drop height at
-    contact time T; 16 substeps make that 0.4 %.
+    Implicit Euler lags by g t h / 2 (h the substep), i.e. h / T of the drop height at
+    contact time T = 0.2 s: 8 % at the paper's 1 substep, 0.5 % at the 16 substeps used here
+    (4 iterations each; free flight needs none beyond the rigid initial guess).
     """
     sc = _scene("drop", **{"sim.substeps": 16, "sim.iterations": 4, "sim.duration": 0.25})
     mesh = box_tetmesh((2, 2, 2), (1.0, 1.0, 1.0))
@@ -317,13 +478,14 @@ def test_free_fall_follows_parabola_before_contact():
 
 def test_hanging_column_sags_by_rho_g_h2_over_2e():
     """A bar of height H clamped at its top stretches under its own weight by
-    rho g H^2 / (2 E) (1D elasticity), within 10 % on a 3 x 3 x 30 cell mesh."""
+    rho g H^2 / (2 E) (1D elasticity), within 10 % on a 3 x 3 x 30 cell mesh (paper settings:
+    1 substep, 16 iterations; 2 s with 5 /s damping to come to rest)."""
     W, H, E, rho = 0.1, 1.0, 1e5, 1000.0
     mesh = box_tetmesh((3, 3, 30), (W, W, H))
     b = ModelBuilder()
     b.add_soft_mesh(mesh, density=rho, youngs_modulus=E, poissons_ratio=0.3, fixed=mesh.vertices[:, 2] > H - 1e-9)
     m = b.finalize()
-    sol = SolverXPBDNeoHookean(m, iterations=16, substeps=2, damping=5.0)
+    sol = SolverVBDNeoHookean(m, iterations=16, substeps=1, damping=5.0)
     s, _ = _run(m, sol, 120)
     bottom = np.abs(mesh.vertices[:, 2]) < 1e-9
     sag = -s.positions()[bottom, 2].mean()
@@ -334,7 +496,7 @@ def test_hanging_column_sags_by_rho_g_h2_over_2e():
 
 def test_uniaxial_compression_stress_over_strain_equals_youngs_modulus():
     """A block between a frictionless ground and a frictionless plate pressed down by 1 %:
-    the plate force over the area, divided by the strain, is E within 5 %."""
+    the plate force over the area, divided by the strain, is E within 5 % (paper settings)."""
     L, E, nu, eps = 0.1, 1e5, 0.3, 0.01
     mesh = box_tetmesh((4, 4, 4), (L, L, L))
     b = ModelBuilder(gravity=(0, 0, 0))
@@ -342,27 +504,26 @@ def test_uniaxial_compression_stress_over_strain_equals_youngs_modulus():
     b.add_ground_plane(friction=0.0)
     b.add_plate("Top", normal=(0, 0, -1), path=[[0, L / 2, L / 2, L], [0.5, L / 2, L / 2, L * (1 - eps)]], friction=0.0)
     m = b.finalize()
-    sol = SolverXPBDNeoHookean(m, iterations=16, substeps=1, damping=5.0)
+    sol = SolverVBDNeoHookean(m, iterations=16, substeps=1, damping=5.0)
     s, forces = _run(m, sol, 90, record=lambda st: st.surface_force.numpy().copy())
     f_plate = -np.mean([f[1, 2] for f in forces[-15:]])
-    x = s.positions()
-    strain = 1 - np.ptp(x[:, 2]) / L
+    strain = 1 - np.ptp(s.positions()[:, 2]) / L
     assert strain == pytest.approx(eps, rel=1e-3)
     assert abs(f_plate / (L * L) / strain / E - 1) < 0.05
-    # the ground carries the same load
-    assert -np.mean([f[0, 2] for f in forces[-15:]]) == pytest.approx(-f_plate, rel=0.02)
+    assert np.mean([f[0, 2] for f in forces[-15:]]) == pytest.approx(f_plate, rel=0.02)  # the ground carries it
 
 
 def test_sliding_block_stops_at_coulomb_distance():
     """A stiff block launched along the ground at v0 decelerates at mu g and stops after
-    v0^2 / (2 mu g)."""
+    v0^2 / (2 mu g), within 3 %. Implicit Euler stops short by mu g h / v0 (6.5 % at the
+    paper's 1 substep), so this runs 4 substeps of 16 iterations (1.6 %)."""
     mesh = box_tetmesh((2, 2, 1), (0.1, 0.1, 0.05))
     mu, v0 = 0.4, 1.0
     b = ModelBuilder()
     b.add_soft_mesh(mesh, vel=(v0, 0, 0), youngs_modulus=1e6, poissons_ratio=0.3)
     b.add_ground_plane(friction=mu)
     m = b.finalize()
-    sol = SolverXPBDNeoHookean(m, iterations=8, substeps=4)
+    sol = SolverVBDNeoHookean(m, iterations=16, substeps=4)
     s, com = _run(m, sol, 30, record=lambda st: st.positions()[:, 0].mean())
     expected = v0**2 / (2 * mu * GRAVITY)
     assert com[-1] - mesh.vertices[:, 0].mean() == pytest.approx(expected, rel=0.03)
@@ -370,77 +531,169 @@ def test_sliding_block_stops_at_coulomb_distance():
 
 
 def test_drop_keeps_volume_within_two_percent_at_nu_045():
+    """The drop scene as shipped (paper settings, E = 200 kPa, nu = 0.45)."""
     sc = load_scene("drop")
-    assert sc.material.poissons_ratio == 0.45
+    assert (sc.material.poissons_ratio, sc.sim.substeps, sc.sim.iterations) == (0.45, 1, 16)
     mesh = box_tetmesh((4, 4, 4), (1.0, 1.0, 1.0))
     r = run_scene(sc, mesh)
     ratio = r["volume"] / r["model"].rest_volume()
-    assert not r["nan"]
     assert r["frames"][:, :, 2].min() > -1e-6  # never below the ground
     assert np.abs(ratio - 1).max() < 0.02, np.abs(ratio - 1).max()
     assert r["com"][-1, 2] == pytest.approx(0.1, abs=0.003)  # came to rest on the ground
+    assert r["plan"].softened_tets == 0
 
 
-def test_squeeze_to_half_height_and_release_leaves_no_nan_and_no_inverted_tets():
+def test_trajectory_converges_with_iterations():
+    """At 1 substep the drop's trajectory approaches the converged implicit Euler one as
+    iterations grow: the largest position difference to the 256-iteration run shrinks
+    with every doubling of 4 -> 16 -> 64 and is within 2 mm (1 % of the cube) at 64."""
+    mesh = box_tetmesh((4, 4, 4), (1.0, 1.0, 1.0), split=5)
+    runs = {}
+    for it in (4, 16, 64, 256):
+        sc = _scene("drop", **{"sim.iterations": it, "sim.duration": 0.5})
+        runs[it] = run_scene(sc, mesh, measure_penetration=False)["frames"]
+    err = [np.abs(runs[it] - runs[256]).max() for it in (4, 16, 64)]
+    assert err[0] > err[1] > err[2], err
+    assert err[2] < 0.002, err
+
+
+def _jittered_cube(rng, cells=5, jitter=0.4):
+    """A cube mesh with interior vertices moved at random by ``jitter`` cells: uneven tets
+    with slivers, all positively oriented."""
+    mesh = box_tetmesh((cells, cells, cells), (1.0, 1.0, 1.0), split=5)
+    for _ in range(20):
+        X = mesh.vertices.copy()
+        inner = np.all((X > 1e-9) & (X < 1 - 1e-9), axis=1)
+        X[inner] += rng.uniform(-jitter, jitter, size=(inner.sum(), 3)) / cells
+        cand = mesh.with_vertices(X)
+        if (cand.signed_volumes() > 0).all():
+            return cand
+    raise AssertionError("no valid jittered mesh")
+
+
+@pytest.mark.parametrize("E, nu", [(1e4, 0.0), (1e4, 0.45), (1e7, 0.0), (1e7, 0.45)])
+def test_paper_settings_are_stable_for_any_stiffness(rng, E, nu):
+    """dt = 1/60 s, 1 substep, 16 iterations: dropping a sliver-laden cube (jittered 625-tet
+    mesh) never gains energy (total mechanical energy stays at or below its start), stays
+    finite and softens no tet, from 10 kPa to 10 MPa and nu from 0 to 0.45."""
+    mesh = _jittered_cube(rng)
+    q = mesh.quality_summary()
+    assert q["min_dihedral_worst"] < 12.0  # slivers present
+    sc = _scene("drop", **{"material.youngs_modulus": E, "material.poissons_ratio": nu})
+    m, _, _ = build_model(sc, mesh)
+    sol = SolverVBDNeoHookean(m, iterations=16, substeps=1)
+    assert sol.plan(DT).softened_tets == 0
+    e0 = _mechanical_energy(m, m.state())
+    s, energies = _run(m, sol, 60, record=lambda st: _mechanical_energy(m, st))
+    assert np.all(np.isfinite(s.positions()))
+    assert max(energies) <= e0 * 1.001, (max(energies), e0)
+    assert s.positions()[:, 2].min() > -1e-6
+
+
+def test_squeeze_to_half_height_and_release_leaves_no_inverted_tets():
+    """The compress scene as shipped (paper settings)."""
     sc = load_scene("compress")
     mesh = box_tetmesh((3, 3, 3), (1.0, 1.0, 1.0))
     r = run_scene(sc, mesh)
-    assert not r["nan"]
     h = np.ptp(r["frames"][:, :, 2], axis=1)
     assert h.min() == pytest.approx(0.5 * h[0], rel=0.02)  # squeezed to 50 %
-    assert r["inverted"][-1] == 0
+    assert r["inverted"].max() == 0
     assert abs(r["volume"][-1] / r["model"].rest_volume() - 1) < 0.01
     assert h[-1] == pytest.approx(h[0], rel=0.02)  # recovered its height
-    top = r["surface_force"][:, 1, 2]
-    assert top.min() < -10.0  # the plate pushed down while squeezing
+    assert r["surface_force"][:, 1, 2].min() < -10.0  # the plate pushed down while squeezing
 
 
-def test_inverted_tets_recover_without_nan():
-    """Tets turned inside out at t = 0 are pushed back by the hydrostatic constraint."""
+def test_inverted_tets_recover():
+    """Tets turned inside out at t = 0 are pushed back by the volume term (paper settings)."""
     mesh = box_tetmesh((2, 2, 2), (0.2, 0.2, 0.2))
     b = ModelBuilder()
     b.add_soft_mesh(mesh, pos=(0, 0, 0.01), youngs_modulus=2e5, poissons_ratio=0.45)
     b.add_ground_plane()
     m = b.finalize()
-    sol = SolverXPBDNeoHookean(m, iterations=16, substeps=4, damping=2.0)
+    sol = SolverVBDNeoHookean(m, iterations=16, substeps=1, damping=2.0)
     s0 = m.state()
     x = m.rest_positions.copy()
     centre = np.argmin(np.linalg.norm(x - x.mean(0), axis=1))
     x[centre, 2] += 0.25  # through the top face
     s0.particle_q.assign(x.astype(np.float32))
-    inv0, _ = sol.tet_stats(s0)
-    assert inv0 >= 4
-    s1, c = m.state(), m.control()
-    counts = []
-    for k in range(60):
-        sol.step(s0, s1, c, None, 1 / 60)
-        s0, s1 = s1, s0
-        counts.append(sol.tet_stats(s0)[0])
-    assert np.all(np.isfinite(s0.positions()))
+    assert sol.tet_stats(s0)[0] >= 4
+    s, counts = _run(m, sol, 60, state=s0, record=lambda st: sol.tet_stats(st)[0])
+    assert np.all(np.isfinite(s.positions()))
     assert counts[-1] == 0
-    _, vol = sol.tet_stats(s0)
-    assert vol == pytest.approx(m.rest_volume(), rel=0.02)
+    assert sol.tet_stats(s)[1] == pytest.approx(m.rest_volume(), rel=0.02)
 
 
-def test_disjoint_blocks_separate_under_compression_one_block_does_not():
-    """Two blocks stacked face to face (two face-connected pieces, as TetSphere's union of
-    spheres) fall apart in the compress scene: with no collision between pieces (self
-    collision off, as in the paper) nothing holds the upper one. The same shape as one
-    connected mesh stays one piece (method.md §10)."""
-    sc = load_scene("compress")
-    lower = box_tetmesh((2, 2, 1), (1.0, 1.0, 0.5))
-    upper = box_tetmesh((2, 2, 1), (1.0, 1.0, 0.5), (0.0, 0.0, 0.5))
-    two = TetMesh(np.concatenate([lower.vertices, upper.vertices]),
-                  np.concatenate([lower.tets, upper.tets + lower.num_vertices]))
-    one = box_tetmesh((2, 2, 2), (1.0, 1.0, 1.0))
+def test_non_finite_state_stops_with_the_step_named():
+    sc = _scene("drop", **{"sim.gravity": (0.0, 0.0, -3.0e38), "sim.duration": 0.5})
+    with pytest.raises(NonFiniteStateError, match=r"after step \d+ \(t = [0-9.]+ s\)"):
+        run_scene(sc, box_tetmesh((1, 1, 1), (1.0, 1.0, 1.0)))
+
+
+# ------------------------------------------------------------------ contact
+def test_stacked_blocks_dropped_come_to_rest_on_each_other():
+    """Two blocks, one 1 cm above the other, dropped together 0.2 m (paper settings): the
+    upper one lands on the lower one and both rest, stacked, with at most 1 % of the block
+    size of penetration at any frame."""
+    sc = _scene("drop", **{"sim.duration": 1.2})
+    lower = box_tetmesh((4, 4, 2), (1.0, 1.0, 0.5))
+    upper = box_tetmesh((4, 4, 2), (1.0, 1.0, 0.5), (0.0, 0.0, 0.55))
+    r = run_scene(sc, [lower, upper])
+    m, x = r["model"], r["frames"]
+    size = 0.2 / 1.05 * 0.5  # block height after placement, m
+    nl = lower.num_vertices
+    assert r["penetration"].max() < 0.01 * size
+    assert x[-1, :nl, 2].min() == pytest.approx(0.0, abs=1e-6)
+    gap = x[-1, nl:, 2].min() - x[-1, :nl, 2].max()
+    assert 0.0 <= gap < 3 * SolverVBDNeoHookean(m).contact_radius + 1e-3  # resting on it
+    np.testing.assert_allclose(x[-1, nl:, :2].mean(0), 0.0, atol=2e-3)  # still on top
+    v = (x[-1] - x[-2]) * 60.0
+    assert np.abs(v).max() < 0.01
+
+
+def test_disjoint_pair_under_compression_separates_and_one_block_stays_whole():
+    """Two cubes side by side in one mesh (two face-connected pieces, as TetSphere's union of
+    spheres) squeezed to half height between greased plates (friction 0.1) and released:
+    contact pushes them apart (components_end 2) without interpenetration; the same shape
+    as one connected mesh stays one piece (method.md §10; paper settings)."""
+    sc = _scene("compress", **{"material.friction": 0.1})
+    two = _join(box_tetmesh((3, 3, 3), (1.0, 1.0, 1.0)), box_tetmesh((3, 3, 3), (1.0, 1.0, 1.0), (1.0, 0.0, 0.0)))
+    one = box_tetmesh((6, 3, 3), (2.0, 1.0, 1.0))
     assert two.components()[1] == 2 and one.components()[1] == 1
     ends = {}
     for label, mesh in (("two", two), ("one", one)):
         r = run_scene(sc, mesh)
-        assert not r["nan"]
         placed = mesh.with_vertices(r["model"].rest_positions)
         ends[label] = pieces_apart(placed, r["frames"][-1])[0]
+        assert r["penetration"].max() < 0.01 * 0.1  # 1 % of a cube's side
     assert ends == {"two": 2, "one": 1}
+
+
+def test_self_collision_keeps_the_arms_of_one_body_apart():
+    """A C-shaped connected body whose upper arm is pushed down onto the lower one by a
+    plate (paper settings): with self-collision the arms stop at the contact distance;
+    without it (the default, as in the paper) the upper arm passes into the lower one."""
+    mask = np.ones((5, 1, 5), bool)
+    mask[1:, 0, 2:4] = False  # a gap of two cells between the arms, open towards +x
+    mesh, _ = box_tetmesh((5, 1, 5), (0.3, 0.06, 0.3), cell_mask=mask).remove_unused_vertices()
+    assert mesh.components()[1] == 1
+    X = mesh.vertices
+    # Facing vertex pairs across the gap: the upper arm's underside above the lower arm's top
+    # (not at the open end, where the tip may slide past the lower arm's end face).
+    under = np.flatnonzero((X[:, 0] > 0.12 - 1e-9) & (X[:, 0] < 0.3 - 1e-9) & (np.abs(X[:, 2] - 0.24) < 1e-9))
+    top = np.array([np.flatnonzero(np.all(np.abs(X - X[u] + [0, 0, 0.12]) < 1e-9, axis=1))[0] for u in under])
+    gaps = {}
+    for self_collision in (False, True):
+        b = ModelBuilder(gravity=(0, 0, 0))
+        b.add_soft_mesh(mesh, youngs_modulus=1e5, poissons_ratio=0.3)
+        b.add_ground_plane(friction=0.5)
+        b.add_plate("Top", normal=(0, 0, -1), path=[[0.0, 0.2, 0.03, 0.3], [0.5, 0.2, 0.03, 0.165]], friction=0.5)
+        m = b.finalize()
+        sol = SolverVBDNeoHookean(m, iterations=16, substeps=1, self_collision=self_collision)
+        s, _ = _run(m, sol, 30)
+        x = s.positions()
+        gaps[self_collision] = (x[under, 2] - x[top, 2]).min()
+    assert gaps[False] < -0.005, gaps  # passed into it
+    assert gaps[True] > 0.0, gaps
 
 
 def test_pieces_that_stay_in_contact_count_as_one():
@@ -448,8 +701,7 @@ def test_pieces_that_stay_in_contact_count_as_one():
     together; moving one away by a block's height separates them."""
     lower = box_tetmesh((1, 1, 1), (1.0, 1.0, 1.0))
     upper = box_tetmesh((1, 1, 1), (1.0, 1.0, 1.0), (0.0, 0.0, 1.0))
-    two = TetMesh(np.concatenate([lower.vertices, upper.vertices]),
-                  np.concatenate([lower.tets, upper.tets + 8]))
+    two = _join(lower, upper)
     assert pieces_apart(two, two.vertices + 0.3)[0] == 1
     moved = two.vertices.copy()
     moved[8:, 0] += 1.0
@@ -457,28 +709,31 @@ def test_pieces_that_stay_in_contact_count_as_one():
     assert n == 2 and info["opened_pairs"][0]["interface_pairs"] == 4
 
 
-def test_stability_plan_raises_substeps_for_fine_stiff_meshes():
-    """The step plan keeps every tet below the stability ratio by adding substeps (keeping
-    the iteration budget) and reports it; the coarse mesh needs no change."""
-    from holowarp.sim import STABILITY_RATIO
-    from holowarp.sim.solver import _stability_ratio_unit_step
+def test_scene_bodies_take_their_own_placement_and_material():
+    """A [[bodies]] scene: each body is placed and made of what its entry says, the rest
+    from [placement] and [material]; plates use the bounding box of all bodies."""
+    from holowarp.sim.scene import parse_scene
 
-    coarse = box_tetmesh((2, 2, 2), (0.2, 0.2, 0.2))
-    fine = box_tetmesh((8, 8, 8), (0.2, 0.2, 0.2))
-    plans = {}
-    for label, mesh in (("coarse", coarse), ("fine", fine)):
-        b = ModelBuilder()
-        b.add_soft_mesh(mesh, youngs_modulus=2e5, poissons_ratio=0.45)
-        m = b.finalize()
-        sol = SolverXPBDNeoHookean(m, iterations=16, substeps=4)
-        p = sol.plan(1 / 60)
-        h = p.dt / p.substeps
-        assert (_stability_ratio_unit_step(m) * h * h).max() <= STABILITY_RATIO * (1 + 1e-9) or p.softened_tets
-        plans[label] = p
-    assert plans["coarse"].substeps == 4 and plans["coarse"].iterations == 16
-    assert plans["fine"].substeps > 4
-    assert plans["fine"].iterations == max(1, int(np.floor(64 / plans["fine"].substeps + 0.5)))
-    assert plans["fine"].softened_tets == 0
+    data = {
+        "placement": {"size": 0.1, "height": 0.0},
+        "material": {"youngs_modulus": 2e5},
+        "bodies": [{"name": "A"}, {"name": "B", "placement": {"height": 0.3, "center_xy": [0.5, 0.0]},
+                                   "material": {"youngs_modulus": 1e6, "friction": 0.2}}],
+        "contact": {"radius": 0.0, "self_collision": True},
+    }
+    sc = parse_scene(data, source="test.toml")
+    assert sc.contact.radius == 0.0 and sc.contact.self_collision  # an explicit 0 is kept
+    m, transforms, bbox = build_model(sc, box_tetmesh((1, 1, 1), (2.0, 2.0, 2.0)))
+    x = m.rest_positions
+    a, b = m.bodies
+    assert np.ptp(x[a.particle_start:a.particle_end], axis=0).max() == pytest.approx(0.1)
+    assert x[b.particle_start:b.particle_end, 2].min() == pytest.approx(0.3)
+    assert x[b.particle_start:b.particle_end, 0].mean() == pytest.approx(0.5)
+    assert m.tet_mu_host[b.tet_start] == pytest.approx(lame_parameters(1e6, 0.45)[0])
+    assert m.tet_mu_host[a.tet_start] == pytest.approx(lame_parameters(2e5, 0.45)[0])
+    assert m.particle_friction.numpy()[b.particle_start] == pytest.approx(0.2)
+    assert m.component_count == 2
+    np.testing.assert_allclose(bbox, [[-0.05, -0.05, 0.0], [0.55, 0.05, 0.4]], atol=1e-9)
 
 
 def test_lame_parameters_and_material_errors():

@@ -16,7 +16,8 @@ from holowarp.primitives import box_tetmesh
 from holowarp.simulate import main
 
 REPORT_KEYS = {"frames", "steps", "seconds", "steps_per_second", "max_inverted", "min_volume_ratio",
-               "max_volume_ratio", "com", "nan", "components_end"}
+               "max_volume_ratio", "com", "nan", "components_end", "plan", "inverted", "volume_ratio",
+               "contact_force", "max_penetration", "inverted_frames", "bodies"}
 
 
 @pytest.fixture
@@ -43,7 +44,7 @@ def test_drop_writes_animated_usd_and_report(tmp_path, box_vtu, capsys):
     from pxr import Usd, UsdGeom
 
     out = tmp_path / "out"
-    rc = main([str(box_vtu), "--scene", "drop", "--out", str(out), "--no-progress"])
+    rc = main([str(box_vtu), "--scene", "drop", "--out", str(out), "--quiet"])
     assert rc == 0
     summary = json.loads(capsys.readouterr().out)
     report = json.loads((out / "report.json").read_text())
@@ -55,6 +56,8 @@ def test_drop_writes_animated_usd_and_report(tmp_path, box_vtu, capsys):
     assert 0.95 < report["min_volume_ratio"] <= 1.0 + 1e-6 <= report["max_volume_ratio"] + 1e-6
     assert report["com"][0][2] == pytest.approx(0.3, abs=1e-6)  # 0.2 m cube, 0.2 m above ground
     assert report["com"][-1][2] == pytest.approx(0.1, abs=0.003)
+    assert report["plan"] == {"dt": 1 / 60, "substeps": 1, "iterations": 16, "softened_tets": 0, "solver": "vbd"}
+    assert report["max_penetration"] < 1e-6 and report["inverted_frames"] == []
 
     stage = Usd.Stage.Open(str(out / "sim.usda"))
     assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z
@@ -179,3 +182,112 @@ def test_simulate_api_equals_cli(tmp_path, box_vtu):
     main([str(box_vtu), "--scene", "drop", "--out", str(out), "--no-progress"])
     cli = json.loads((out / "report.json").read_text())
     assert rep["com"] == cli["com"] and rep["components_end"] == cli["components_end"]
+
+
+def test_help_names_the_mesh_formats_and_quiet(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert ".vtu" in text and ".obj" in text and "fTetWild" in text and "--quiet" in text
+    assert "--no-progress" not in text  # the old spelling still works, hidden
+
+
+def test_progress_bar_stays_off_when_stderr_is_not_a_terminal(tmp_path, box_vtu, capsys):
+    scene = _short_scene(tmp_path, "drop", duration=0.1)
+    assert main([str(box_vtu), "--scene", str(scene), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err  # pytest's capture is not a terminal
+    assert "step/s" not in err and "%|" not in err
+
+
+def _write_scene(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def test_scene_with_bodies_simulates_each_with_its_mesh(tmp_path, box_vtu):
+    """A [[bodies]] scene: a body from a mesh file next to the scene (relative path) dropped
+    onto the command-line mesh; both rest, stacked, and the report lists them."""
+    sub = tmp_path / "scenes"
+    sub.mkdir()
+    write_tetmesh(sub / "small.vtu", box_tetmesh((2, 2, 2), (0.5, 0.5, 0.5)))
+    scene = _write_scene(sub / "two.toml", """
+name = "two"
+[sim]
+duration = 1.0
+[placement]
+size = 0.1
+[[bodies]]
+name = "Base"
+[[bodies]]
+name = "Top"
+mesh = "small.vtu"
+[bodies.placement]
+size = 0.05
+height = 0.12
+[bodies.material]
+youngs_modulus = 1.0e6
+""")
+    out = tmp_path / "out"
+    assert main([str(box_vtu), "--scene", str(scene), "--out", str(out), "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert [b["name"] for b in report["bodies"]] == ["Base", "Top"]
+    assert report["bodies"][1]["mesh"] == str(sub / "small.vtu") and report["bodies"][1]["tets"] == 48
+    assert report["bodies"][1]["com_end"][2] == pytest.approx(0.1 + 0.025, abs=0.003)  # on the base
+    assert report["max_penetration"] < 0.001  # 1 % of the base
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(out / "sim.usda"))
+    assert stage.GetPrimAtPath("/World/Base/TetMesh").IsValid() and stage.GetPrimAtPath("/World/Top/TetMesh").IsValid()
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ('[[bodies]]\nname = "A"\nmesh = "nope.vtu"\n', r"body 'A' mesh .*nope\.vtu: no such file"),
+        ('[[bodies]]\nname = "A"\ncolour = 1\n', r"\[bodies\.0\] unknown key\(s\) colour"),
+        ('[[bodies]]\nname = "A"\n[bodies.material]\nrestitution = 0.5\n', r"\[bodies\.0\.material\] unknown key"),
+        ('[contact]\nstiffness = 0\n', r"\[contact\] stiffness: must be > 0"),
+        ('[contact]\nradius = -1\n', r"\[contact\] radius: must be >= 0"),
+    ],
+)
+def test_bad_bodies_and_contact_values_are_one_line_errors(tmp_path, box_vtu, capsys, text, message):
+    bad = _write_scene(tmp_path / "bad.toml", text)
+    rc = main([str(box_vtu), "--scene", str(bad), "--out", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and re.search(message, err), err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o" / "report.json").exists()
+
+
+def test_non_finite_state_fails_with_the_step_and_keeps_the_previous_report(tmp_path, box_vtu, capsys):
+    out = tmp_path / "out"
+    scene = _short_scene(tmp_path, "drop", duration=0.1)
+    assert main([str(box_vtu), "--scene", str(scene), "--out", str(out), "--quiet"]) == 0
+    before = (out / "report.json").read_text()
+    bad = _write_scene(tmp_path / "blowup.toml", scene.read_text().replace("gravity = [0.0, 0.0, -9.81]",
+                                                                         "gravity = [0.0, 0.0, -3.0e38]"))
+    capsys.readouterr()
+    rc = main([str(box_vtu), "--scene", str(bad), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 1 and re.search(r"non-finite positions after step \d+", err), err
+    assert (out / "report.json").read_text() == before
+
+
+def test_inverted_frames_are_reported_on_stderr_and_in_the_report(tmp_path, box_vtu, capsys):
+    """A very soft, fully compressible cube crushed to a fifth of its height folds tets;
+    every frame with inverted tets is listed and a warning names them."""
+    from holowarp.scenes import scene_path
+
+    text = scene_path("compress").read_text()
+    text = text.replace("[0.8, 0.5, 0.5, 0.5], [1.1, 0.5, 0.5, 0.5]", "[0.8, 0.5, 0.5, 0.2], [1.1, 0.5, 0.5, 0.2]")
+    text = re.sub(r"(?m)^youngs_modulus\s*=\s*[^#\n]*", "youngs_modulus = 1.0e4 ", text)
+    text = re.sub(r"(?m)^poissons_ratio\s*=\s*[^#\n]*", "poissons_ratio = 0.0 ", text)
+    text = re.sub(r"(?m)^duration\s*=\s*[^#\n]*", "duration = 1.2 ", text)
+    scene = _write_scene(tmp_path / "crush.toml", text)
+    out = tmp_path / "out"
+    assert main([str(box_vtu), "--scene", str(scene), "--out", str(out), "--quiet"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    err = capsys.readouterr().err
+    frames = [k for k, n in enumerate(report["inverted"]) if n > 0]
+    assert frames and report["inverted_frames"] == frames and report["max_inverted"] > 0
+    assert "warning" in err and "inverted tets" in err and f"frames {frames[0]}-{frames[-1]}" in err

@@ -2,10 +2,12 @@
 
 Newton's architecture: a static :class:`Model` built by a :class:`ModelBuilder`,
 :class:`State` objects (positions, velocities), a :class:`Control` (kinematic plate poses)
-and a solver, :class:`SolverXPBDNeoHookean`, whose ``step(state_in, state_out, control,
-contacts, dt)`` is pure in its inputs. Scenarios are TOML data (:func:`load_scene`);
-:func:`run_scene` steps one in memory. Files (mesh loading, USD, reports, renders) belong to
-the application above this package, :mod:`holowarp.simulation`.
+and a solver, :class:`SolverVBDNeoHookean` (Vertex Block Descent: stable at any step), whose
+``step(state_in, state_out, control, contacts, dt)`` is pure in its inputs. Scenarios are
+TOML data (:func:`load_scene`); :func:`run_scene` steps one in memory. A scene may hold
+several bodies (``[[bodies]]``); bodies touch each other, and so do the face-disconnected
+pieces of one mesh. Files (mesh loading, USD, reports, renders) belong to the application
+above this package, :mod:`holowarp.simulation`.
 """
 
 from holowarp.sim.control import Control
@@ -18,11 +20,11 @@ from holowarp.sim.model import (
     Plate,
     lame_parameters,
 )
-from holowarp.sim.solver import PAPER_DT, PAPER_ITERATIONS, STABILITY_RATIO, SolverXPBDNeoHookean, StepPlan
+from holowarp.sim.solver import PAPER_DT, PAPER_ITERATIONS, SolverVBDNeoHookean, StepPlan
 from holowarp.sim.state import State
-from holowarp.sim.scene import Scene, SceneError, load_scene
+from holowarp.sim.scene import BodySpec, ContactSettings, Scene, SceneError, load_scene
 from holowarp.sim.analysis import pieces_apart
-from holowarp.sim.run import FPS, run_scene
+from holowarp.sim.run import FPS, NonFiniteStateError, run_scene
 
 __all__ = [
     "FPS",
@@ -30,15 +32,17 @@ __all__ = [
     "PAPER_DT",
     "PAPER_ITERATIONS",
     "Body",
+    "BodySpec",
+    "ContactSettings",
     "Control",
     "Model",
     "ModelBuilder",
     "ModelError",
+    "NonFiniteStateError",
     "Plate",
     "Scene",
     "SceneError",
-    "STABILITY_RATIO",
-    "SolverXPBDNeoHookean",
+    "SolverVBDNeoHookean",
     "StepPlan",
     "State",
     "lame_parameters",

@@ -1,8 +1,9 @@
 """The static description of a simulation (Newton's ``Model``) and the builder that makes it.
 
 A :class:`Model` holds what never changes during a run: rest shape, tets, inverse rest
-matrices, lumped masses, Lamé parameters, the Gauss-Seidel colouring, gravity, the ground
-plane and the kinematic plates with their schedules. It is built once by a
+matrices, lumped masses, Lamé parameters, the particles' Gauss-Seidel colouring and tet
+adjacency, the boundary triangles and face-connected components that contacts work on,
+gravity, the ground plane and the kinematic plates with their schedules. It is built once by a
 :class:`ModelBuilder` and then handed to a solver together with :class:`State` objects
 (positions, velocities) and a :class:`Control` (plate poses over the current step).
 
@@ -23,18 +24,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from holowarp.errors import InputError
 from holowarp.tetmesh import TetMesh
 
 __all__ = [
     "GRAVITY",
     "ModelError",
     "lame_parameters",
+    "stable_neo_hookean_parameters",
     "euler_xyz_to_matrix",
     "Plate",
     "Body",
     "Model",
     "ModelBuilder",
-    "color_tets",
+    "color_vertices",
 ]
 
 #: Standard gravity, m/s², along -Z (method.md §10: Z up, gravity 9.81).
@@ -44,7 +47,7 @@ GRAVITY = 9.81
 _DEGENERATE_VOLUME_FRACTION = 1.0e-12
 
 
-class ModelError(ValueError):
+class ModelError(InputError):
     """A simulation model cannot be built from the given input; the message says why."""
 
 
@@ -65,6 +68,16 @@ def lame_parameters(youngs_modulus: float, poissons_ratio: float) -> tuple[float
     mu = E / (2.0 * (1.0 + nu))
     lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     return mu, lam
+
+
+def stable_neo_hookean_parameters(mu, lam):
+    """Smith et al. 2018's (mu', lambda') from the Lamé parameters (Pa): ``mu' = 4/3 mu``,
+    ``lambda' = lambda + 5/6 mu``; with ``alpha = 1 + 3 mu' / (4 lambda')`` their stable
+    Neo-Hookean energy linearises to linear elasticity with exactly ``mu`` and ``lambda``
+    (kernels/sim_vbd.py). Accepts scalars or arrays."""
+    mu = np.asarray(mu, dtype=np.float64)
+    lam = np.asarray(lam, dtype=np.float64)
+    return mu * (4.0 / 3.0), lam + mu * (5.0 / 6.0)
 
 
 def euler_xyz_to_matrix(degrees) -> np.ndarray:
@@ -127,32 +140,45 @@ class Body:
 class Model:
     """Static simulation data on one Warp device (built by :meth:`ModelBuilder.finalize`).
 
-    Attributes (Warp arrays on ``device``; N particles, M tets, S contact surfaces):
+    Attributes (Warp arrays on ``device``; N particles, M tets, T surface triangles, S
+    contact half-spaces):
         particle_q: initial positions [N] vec3, m.
         particle_qd: initial velocities [N] vec3, m/s.
         particle_mass: lumped masses [N], kg (density x tet volume / 4 per corner).
         particle_inv_mass: [N], 1/kg; 0 for fixed particles.
-        tet_indices: [M, 4] int32, positively oriented, stored colour by colour
-            (``tet_permutation`` (M,) maps them back to the input order).
+        particle_friction: [N] Coulomb coefficient of each particle's body.
+        particle_stiffness: [N] rest elastic stiffness of each particle, N/m: the trace
+            bound ``sum_t V_t (mu + lambda') |b_t|^2`` of its block Hessian (scales the
+            contact penalty).
+        particle_component: [N] int32 face-connected component of each particle (global
+            over bodies: body by body, then the mesh's components).
+        particle_color_order: [N] int32 particles sorted by colour (no two particles of a
+            tet share a colour); ``particle_color_offsets`` (C + 1,) NumPy bounds.
+        particle_adj_offsets, particle_adj: CSR of each particle's tets, packed ``4 t + k``
+            (k its corner in the tet).
+        tet_indices: [M, 4] int32, positively oriented, in input order (bodies concatenated).
         tet_dm_inv: [M] mat33, inverse rest edge matrix ``[b-a, c-a, d-a]^-1``.
         tet_volume: [M] rest volumes, m³.
         tet_mu, tet_lambda: [M] Lamé parameters, Pa.
-        tet_color_order: [M] int32, the sweep order (the identity, since the tets are
-            stored colour by colour; no two tets of one colour share a vertex);
-            ``tet_color_offsets`` (C + 1,) NumPy bounds of each colour.
-        surface_normal, surface_friction, surface_restitution: [S] per contact surface
+        tet_component: [M] int32 component of each tet.
+        tri_indices: [T, 3] int32 boundary triangles of every body, wound outward.
+        tri_component: [T] int32 component of each triangle.
+        surface_vertices: [Vs] int32 particles on the boundary.
+        surface_normal, surface_friction, surface_restitution: [S] per contact half-space
             (the ground first when present, then the plates in the order added).
         gravity: (3,) NumPy, m/s².
 
     Host-side copies: ``rest_positions`` (N, 3) float64 (the positions the builder placed),
-    ``tets`` (M, 4) int32 (stored order), ``masses`` (N,), ``bodies`` (list of :class:`Body`), ``plates``
-    (list of :class:`Plate`), ``ground`` (dict or None).
+    ``tets`` (M, 4) int32, ``tris`` (T, 3) int32, ``masses`` (N,), ``fixed`` (N,) bool,
+    ``components`` (N,) int64 particle components, ``component_count``, ``bodies`` (list of
+    :class:`Body`), ``plates`` (list of :class:`Plate`), ``ground`` (dict or None).
     """
 
     def __init__(self):
         self.device = "cpu"
         self.particle_count = 0
         self.tet_count = 0
+        self.component_count = 0
         self.bodies: list[Body] = []
         self.plates: list[Plate] = []
         self.ground: dict | None = None
@@ -165,7 +191,12 @@ class Model:
 
     @property
     def color_count(self) -> int:
-        return len(self.tet_color_offsets) - 1
+        return len(self.particle_color_offsets) - 1
+
+    @property
+    def surface_names(self) -> list[str]:
+        """Names of the contact half-spaces in model order: ``"Ground"``, then the plates."""
+        return (["Ground"] if self.ground is not None else []) + [p.name for p in self.plates]
 
     def surface_points(self, t: float) -> np.ndarray:
         """(S, 3) contact-plane points at time ``t``: ground origin, then plate faces."""
@@ -174,6 +205,12 @@ class Model:
             pts.append(np.array([0.0, 0.0, float(self.ground["height"])]))
         pts += [p.position(t) for p in self.plates]
         return np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+
+    def surface_normals(self) -> np.ndarray:
+        """(S, 3) unit normals of the contact half-spaces (model order)."""
+        n = [[0.0, 0.0, 1.0]] if self.ground is not None else []
+        n += [p.normal for p in self.plates]
+        return np.asarray(n, dtype=np.float64).reshape(-1, 3)
 
     def state(self) -> "State":
         """A new :class:`State` holding the initial positions and velocities."""
@@ -190,6 +227,14 @@ class Model:
     def rest_volume(self) -> float:
         """Total rest volume in m³."""
         return float(self.tet_volume_host.sum())
+
+    def median_surface_edge(self) -> float:
+        """Median length (m) of the boundary triangles' edges at rest."""
+        X, F = self.rest_positions, self.tris
+        if len(F) == 0:
+            return float(np.ptp(X, axis=0).max())
+        e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+        return float(np.median(np.linalg.norm(X[e[:, 0]] - X[e[:, 1]], axis=1)))
 
 
 class ModelBuilder:
@@ -211,6 +256,11 @@ class ModelBuilder:
         self._density: list[np.ndarray] = []
         self._mu: list[np.ndarray] = []
         self._lambda: list[np.ndarray] = []
+        self._tet_comp: list[np.ndarray] = []
+        self._tris: list[np.ndarray] = []
+        self._tri_comp: list[np.ndarray] = []
+        self._friction: list[np.ndarray] = []
+        self._ncomp = 0
         self._bodies: list[Body] = []
         self._plates: list[Plate] = []
         self._ground: dict | None = None
@@ -229,6 +279,7 @@ class ModelBuilder:
         density: float = 1000.0,
         youngs_modulus: float = 1.0e5,
         poissons_ratio: float = 0.45,
+        friction: float = 0.5,
         fixed=None,
         name: str | None = None,
     ) -> Body:
@@ -246,6 +297,8 @@ class ModelBuilder:
             density: kg/m³.
             youngs_modulus: E in Pa.
             poissons_ratio: nu in [0, 0.5).
+            friction: Coulomb coefficient of this body against other bodies (a pair uses
+                the mean of both bodies' coefficients).
             fixed: optional bool mask (N,) or index array of vertices held in place
                 (infinite mass).
             name: body name (defaults to ``Body<k>``).
@@ -256,46 +309,12 @@ class ModelBuilder:
         Raises:
             ModelError: bad material, unused vertices or degenerate (zero-volume) tets.
         """
-        if not isinstance(mesh, TetMesh):
-            raise ModelError(f"add_soft_mesh: expected a holowarp TetMesh, got {type(mesh).__name__}")
-        if mesh.num_tets == 0:
-            raise ModelError("add_soft_mesh: the mesh has no tets")
         mu, lam = lame_parameters(youngs_modulus, poissons_ratio)
         if not np.isfinite(density) or density <= 0:
             raise ModelError(f"density must be a positive number of kg/m^3, got {density}")
-        if not np.isfinite(scale) or scale <= 0:
-            raise ModelError(f"scale must be positive, got {scale}")
-        used = np.zeros(mesh.num_vertices, dtype=bool)
-        used[mesh.tets.reshape(-1)] = True
-        if not used.all():
-            raise ModelError(
-                f"add_soft_mesh: {int((~used).sum())} of {mesh.num_vertices} vertices belong to no "
-                "tet and would have no mass; call mesh.remove_unused_vertices() first"
-            )
-        R = np.eye(3) if rot is None else np.asarray(rot, dtype=np.float64)
-        if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
-            raise ModelError("add_soft_mesh: rot must be a 3x3 rotation matrix")
-        x = (mesh.vertices * float(scale)) @ R.T + np.asarray(pos, dtype=np.float64).reshape(3)
-        mesh_w, _ = TetMesh(x, mesh.tets, validate=False).oriented()
-        vol = mesh_w.signed_volumes()
-        diag = float(np.linalg.norm(x.max(0) - x.min(0)))
-        tiny = _DEGENERATE_VOLUME_FRACTION * diag**3
-        bad = np.abs(vol) <= tiny
-        if bad.any():
-            raise ModelError(
-                f"add_soft_mesh: {int(bad.sum())} of {mesh.num_tets} tets are degenerate (rest volume "
-                f"<= {tiny:.3g} m^3, first: tet {int(np.argmax(bad))}); clean the mesh first "
-                "(drop degenerate tets)"
-            )
-        fix = np.zeros(mesh.num_vertices, dtype=bool)
-        if fixed is not None:
-            f = np.asarray(fixed)
-            if f.dtype == bool:
-                if f.shape != (mesh.num_vertices,):
-                    raise ModelError(f"fixed mask must have shape ({mesh.num_vertices},), got {f.shape}")
-                fix = f.copy()
-            else:
-                fix[f.astype(np.int64)] = True
+        _check_coeffs("add_soft_mesh", friction, 0.0)
+        x, mesh_w = _placed_mesh(mesh, pos, rot, scale)
+        fix = _fixed_mask(fixed, mesh.num_vertices)
         v0 = np.broadcast_to(np.asarray(vel, dtype=np.float64).reshape(-1), (mesh.num_vertices, 3)).copy()
         v0[fix] = 0.0
 
@@ -310,6 +329,12 @@ class ModelBuilder:
         self._velocities.append(v0)
         self._fixed.append(fix)
         self._tets.append(mesh_w.tets.astype(np.int64) + self._n)
+        labels, ncomp = mesh_w.components()
+        self._tet_comp.append(labels.astype(np.int64) + self._ncomp)
+        self._tris.append(mesh_w.boundary_faces().astype(np.int64) + self._n)
+        self._tri_comp.append(labels[mesh_w.boundary_face_tets()].astype(np.int64) + self._ncomp)
+        self._ncomp += int(ncomp)
+        self._friction.append(np.full(mesh.num_vertices, float(friction)))
         M = mesh.num_tets
         self._density.append(np.full(M, float(density)))
         self._mu.append(np.full(M, mu))
@@ -375,115 +400,185 @@ class ModelBuilder:
         V = np.concatenate(self._velocities)
         fix = np.concatenate(self._fixed)
         T = np.concatenate(self._tets).astype(np.int32)
+        N, M = len(X), len(T)
         a, b, c, d = (X[T[:, k]] for k in range(4))
         Dm = np.stack([b - a, c - a, d - a], axis=2)  # [M, 3, 3] columns are edges
         vol = np.linalg.det(Dm) / 6.0
         Dm_inv = np.linalg.inv(Dm)
         rho = np.concatenate(self._density)
-        mass = np.zeros(len(X))
+        mass = np.zeros(N)
         np.add.at(mass, T.reshape(-1), np.repeat(rho * vol / 4.0, 4))
         inv_mass = np.where(fix, 0.0, 1.0 / mass)
+        mu_t = np.concatenate(self._mu)
+        lam_t = np.concatenate(self._lambda)
+        mu_p, lam_p = stable_neo_hookean_parameters(mu_t, lam_t)
 
-        order, offsets = color_tets(T, len(X))
-        # Store the tets colour by colour: a sweep then reads every per-tet array in memory
-        # order (the CPU backend runs a launch serially, so this is its cache behaviour).
-        # ``tet_permutation[k]`` is the input tet (concatenated over bodies) stored at k.
-        T, Dm_inv, vol = T[order], Dm_inv[order], vol[order]
-        mu_t = np.concatenate(self._mu)[order]
-        lam_t = np.concatenate(self._lambda)[order]
+        # Rest shape-function gradients b (rows of Dm^-1; corner 0: minus their sum) give
+        # each particle's rest stiffness bound sum V (mu + lambda') |b|^2 (the trace bound of
+        # its block Hessian at rest, where mu' I_C / (I_C + 1) = mu).
+        grads = np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1)  # [M, 4, 3]
+        stiff = np.zeros(N)
+        np.add.at(stiff, T.reshape(-1), ((vol * (mu_t + lam_p))[:, None] * (grads**2).sum(axis=2)).reshape(-1))
+
+        order, offsets = color_vertices(T, N)
+        # Each particle's tets (CSR), packed 4 t + corner, grouped by particle.
+        flat_v = T.reshape(-1).astype(np.int64)
+        packed = np.arange(4 * M, dtype=np.int64)  # = 4 t + k for tets[t, k]
+        o = np.argsort(flat_v, kind="stable")
+        adj = packed[o].astype(np.int32)
+        adj_off = np.concatenate([[0], np.cumsum(np.bincount(flat_v, minlength=N))]).astype(np.int32)
+
+        tet_comp = np.concatenate(self._tet_comp)
+        tris = np.concatenate(self._tris).astype(np.int32)
+        tri_comp = np.concatenate(self._tri_comp)
+        comp = np.zeros(N, np.int64)
+        comp[T.reshape(-1)] = np.repeat(tet_comp, 4)  # a particle shared by pieces takes one
+        surf_v = np.unique(tris).astype(np.int32)
 
         m = Model()
         m.device = device
-        m.particle_count = len(X)
-        m.tet_count = len(T)
+        m.particle_count = N
+        m.tet_count = M
+        m.component_count = int(self._ncomp)
         m.bodies = list(self._bodies)
         m.plates = list(self._plates)
         m.ground = None if self._ground is None else dict(self._ground)
         m.gravity = self.gravity.copy()
         m.rest_positions = X
         m.tets = T
+        m.tris = tris
         m.masses = mass
         m.fixed = fix
+        m.components = comp
         m.tet_volume_host = vol
         m.tet_mu_host = mu_t
         m.tet_lambda_host = lam_t
-        m.tet_color_offsets = offsets
-        m.tet_permutation = order.astype(np.int64)
+        m.particle_color_offsets = offsets
+        m.particle_stiffness_host = stiff
 
-        f32 = np.float32
-        m.particle_q = wp.array(X.astype(f32), dtype=wp.vec3, device=device)
-        m.particle_qd = wp.array(V.astype(f32), dtype=wp.vec3, device=device)
-        m.particle_mass = wp.array(mass.astype(f32), dtype=float, device=device)
-        m.particle_inv_mass = wp.array(inv_mass.astype(f32), dtype=float, device=device)
-        m.tet_indices = wp.array(T, dtype=wp.int32, device=device)
-        m.tet_dm_inv = wp.array(Dm_inv.astype(f32), dtype=wp.mat33, device=device)
-        m.tet_volume = wp.array(vol.astype(f32), dtype=float, device=device)
-        m.tet_mu = wp.array(mu_t.astype(f32), dtype=float, device=device)
-        m.tet_lambda = wp.array(lam_t.astype(f32), dtype=float, device=device)
-        m.tet_color_order = wp.array(np.arange(len(T), dtype=np.int32), dtype=wp.int32, device=device)
-
-        normals, friction, restitution = [], [], []
-        if m.ground is not None:
-            normals.append([0.0, 0.0, 1.0])
-            friction.append(m.ground["friction"])
-            restitution.append(m.ground["restitution"])
-        for p in m.plates:
-            normals.append(p.normal)
-            friction.append(p.friction)
-            restitution.append(p.restitution)
-        S = len(normals)
-        m.surface_normal = wp.array(np.asarray(normals, f32).reshape(S, 3), dtype=wp.vec3, device=device)
-        m.surface_friction = wp.array(np.asarray(friction, f32).reshape(S), dtype=float, device=device)
-        m.surface_restitution = wp.array(np.asarray(restitution, f32).reshape(S), dtype=float, device=device)
+        _upload(m, wp, device, V=V, inv_mass=inv_mass, friction=np.concatenate(self._friction), adj=adj,
+                adj_off=adj_off, order=order, Dm_inv=Dm_inv, mu_p=mu_p, lam_p=lam_p, tet_comp=tet_comp,
+                tri_comp=tri_comp, surf_v=surf_v)
         return m
 
 
-def color_tets(tets: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """Colour tets so that no two tets of one colour share a vertex.
+def _upload(m: Model, wp, device, *, V, inv_mass, friction, adj, adj_off, order, Dm_inv, mu_p, lam_p, tet_comp,
+            tri_comp, surf_v) -> None:
+    """Put the model's arrays on ``device`` (float32; see :class:`Model`)."""
+    f32 = np.float32
+    i32 = np.int32
+    m.particle_q = wp.array(m.rest_positions.astype(f32), dtype=wp.vec3, device=device)
+    m.particle_qd = wp.array(V.astype(f32), dtype=wp.vec3, device=device)
+    m.particle_mass = wp.array(m.masses.astype(f32), dtype=float, device=device)
+    m.particle_inv_mass = wp.array(inv_mass.astype(f32), dtype=float, device=device)
+    m.particle_friction = wp.array(friction.astype(f32), dtype=float, device=device)
+    m.particle_stiffness = wp.array(m.particle_stiffness_host.astype(f32), dtype=float, device=device)
+    m.particle_component = wp.array(m.components.astype(i32), dtype=wp.int32, device=device)
+    m.particle_color_order = wp.array(order.astype(i32), dtype=wp.int32, device=device)
+    m.particle_adj_offsets = wp.array(adj_off, dtype=wp.int32, device=device)
+    m.particle_adj = wp.array(adj, dtype=wp.int32, device=device)
+    m.tet_indices = wp.array(m.tets, dtype=wp.int32, device=device)
+    m.tet_dm_inv = wp.array(Dm_inv.astype(f32), dtype=wp.mat33, device=device)
+    m.tet_volume = wp.array(m.tet_volume_host.astype(f32), dtype=float, device=device)
+    m.tet_mu = wp.array(m.tet_mu_host.astype(f32), dtype=float, device=device)
+    m.tet_lambda = wp.array(m.tet_lambda_host.astype(f32), dtype=float, device=device)
+    m.tet_mu_v = wp.array((m.tet_volume_host * mu_p).astype(f32), dtype=float, device=device)
+    m.tet_lam_v = wp.array((m.tet_volume_host * lam_p).astype(f32), dtype=float, device=device)
+    m.tet_alpha = wp.array((1.0 + 0.75 * mu_p / lam_p).astype(f32), dtype=float, device=device)
+    m.tet_component = wp.array(tet_comp.astype(i32), dtype=wp.int32, device=device)
+    m.tri_indices = wp.array(m.tris.reshape(-1, 3), dtype=wp.int32, device=device)
+    m.tri_component = wp.array(tri_comp.astype(i32), dtype=wp.int32, device=device)
+    m.surface_vertices = wp.array(surf_v, dtype=wp.int32, device=device)
 
-    Uses Warp's graph colouring (maximum cardinality search) on the graph whose edges join
-    tets sharing a vertex.
+    fric, restitution = [], []
+    if m.ground is not None:
+        fric.append(m.ground["friction"])
+        restitution.append(m.ground["restitution"])
+    for p in m.plates:
+        fric.append(p.friction)
+        restitution.append(p.restitution)
+    # Arrays keep at least one row so kernels always get a valid array; ``surface_count``
+    # says how many are real.
+    normals = m.surface_normals().astype(f32) if fric else np.zeros((1, 3), f32)
+    m.surface_normal = wp.array(normals, dtype=wp.vec3, device=device)
+    m.surface_friction = wp.array(np.asarray(fric or [0.0], f32), dtype=float, device=device)
+    m.surface_restitution = wp.array(np.asarray(restitution or [0.0], f32), dtype=float, device=device)
+
+
+def color_vertices(tets: np.ndarray, num_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Colour particles so that no two particles of one tet share a colour.
+
+    Uses Warp's graph colouring (maximum cardinality search) on the tets' edge graph.
 
     Args:
         tets: (M, 4) vertex indices.
         num_vertices: N.
 
     Returns:
-        (order (M,) int32 tets sorted by colour, offsets (C + 1,) int64 colour bounds).
+        (order (N,) int32 particles sorted by colour, offsets (C + 1,) int64 colour bounds).
     """
     from holowarp.device import init_warp
+    from holowarp.tetmesh import TetMesh
 
     wp = init_warp()
-    M = len(tets)
-    if M == 1:
-        return np.zeros(1, np.int32), np.array([0, 1], np.int64)
-    # Vertex -> incident tets (CSR), then all pairs of tets around each vertex.
-    flat_v = tets.reshape(-1).astype(np.int64)
-    flat_t = np.repeat(np.arange(M, dtype=np.int64), 4)
-    o = np.argsort(flat_v, kind="stable")
-    sv, st = flat_v[o], flat_t[o]
-    counts = np.bincount(sv, minlength=num_vertices)
-    starts = np.concatenate([[0], np.cumsum(counts)])
-    pairs = []
-    # Group vertices by valence so each group is one vectorised pair expansion.
-    for k in np.unique(counts[counts > 1]):
-        verts = np.flatnonzero(counts == k)
-        block = st[starts[verts][:, None] + np.arange(k)[None, :]]  # [nv, k]
-        iu, ju = np.triu_indices(int(k), 1)
-        pairs.append(np.stack([block[:, iu].reshape(-1), block[:, ju].reshape(-1)], axis=1))
-    if pairs:
-        e = np.concatenate(pairs)
-        e = np.unique(e[:, 0] * M + e[:, 1])
-        edges = np.stack([e // M, e % M], axis=1).astype(np.int32)
-    else:
-        edges = np.zeros((0, 2), np.int32)
-    colors = wp.zeros(M, dtype=wp.int32, device="cpu")
+    edges = TetMesh(np.zeros((num_vertices, 3)), tets, validate=False).edges().astype(np.int32)
+    colors = wp.zeros(num_vertices, dtype=wp.int32, device="cpu")
     if len(edges):
         wp.utils.graph_coloring_assign(wp.array(edges, dtype=wp.int32, device="cpu"), colors)
     col = colors.numpy()
     order = np.argsort(col, kind="stable").astype(np.int32)
     offsets = np.concatenate([[0], np.cumsum(np.bincount(col))]).astype(np.int64)
     return order, offsets
+
+
+def _placed_mesh(mesh, pos, rot, scale) -> tuple[np.ndarray, TetMesh]:
+    """World positions (N, 3) ``rot @ (scale v) + pos`` and the positively oriented mesh on
+    them; raises :class:`ModelError` for input no simulation can use."""
+    if not isinstance(mesh, TetMesh):
+        raise ModelError(f"add_soft_mesh: expected a holowarp TetMesh, got {type(mesh).__name__}")
+    if mesh.num_tets == 0:
+        raise ModelError("add_soft_mesh: the mesh has no tets")
+    if not np.isfinite(scale) or scale <= 0:
+        raise ModelError(f"scale must be positive, got {scale}")
+    used = np.zeros(mesh.num_vertices, dtype=bool)
+    used[mesh.tets.reshape(-1)] = True
+    if not used.all():
+        raise ModelError(
+            f"add_soft_mesh: {int((~used).sum())} of {mesh.num_vertices} vertices belong to no "
+            "tet and would have no mass; call mesh.remove_unused_vertices() first"
+        )
+    R = np.eye(3) if rot is None else np.asarray(rot, dtype=np.float64)
+    if R.shape != (3, 3) or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
+        raise ModelError("add_soft_mesh: rot must be a 3x3 rotation matrix")
+    x = (mesh.vertices * float(scale)) @ R.T + np.asarray(pos, dtype=np.float64).reshape(3)
+    if not np.all(np.isfinite(x)):
+        raise ModelError("add_soft_mesh: the placed vertices are not all finite")
+    mesh_w, _ = TetMesh(x, mesh.tets, validate=False).oriented()
+    vol = mesh_w.signed_volumes()
+    diag = float(np.linalg.norm(x.max(0) - x.min(0)))
+    tiny = _DEGENERATE_VOLUME_FRACTION * diag**3
+    bad = np.abs(vol) <= tiny
+    if bad.any():
+        raise ModelError(
+            f"add_soft_mesh: {int(bad.sum())} of {mesh.num_tets} tets are degenerate (rest volume "
+            f"<= {tiny:.3g} m^3, first: tet {int(np.argmax(bad))}); clean the mesh first "
+            "(drop degenerate tets)"
+        )
+    return x, mesh_w
+
+
+def _fixed_mask(fixed, n: int) -> np.ndarray:
+    """(n,) bool from a bool mask or an index array (None: nothing fixed)."""
+    fix = np.zeros(n, dtype=bool)
+    if fixed is not None:
+        f = np.asarray(fixed)
+        if f.dtype == bool:
+            if f.shape != (n,):
+                raise ModelError(f"fixed mask must have shape ({n},), got {f.shape}")
+            fix = f.copy()
+        else:
+            fix[f.astype(np.int64)] = True
+    return fix
 
 
 def _check_coeffs(what: str, friction, restitution) -> None:

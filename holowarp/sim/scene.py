@@ -14,9 +14,21 @@ Layout (all SI; see ``scenes/drop.toml`` for a commented example)::
     [material]   youngs_modulus, poissons_ratio, density, friction, restitution
     [placement]  size, rotation, center_xy, height, velocity
     [ground]     enabled
+    [contact]    radius, margin, stiffness, self_collision, friction_epsilon
     [[plates]]   name, normal, size, frame ("object" | "world"), path = [[t, x, y, z], ...]
+    [[bodies]]   name, mesh, [bodies.placement] (as [placement]),
+                 [bodies.material] youngs_modulus, poissons_ratio, density, friction
 
-Plate paths in the ``"object"`` frame are fractions of the placed object's rest bounding
+Without ``[[bodies]]`` the scene has one body: the mesh given to the simulation, placed by
+``[placement]`` with ``[material]`` (every scene file written before bodies existed stays
+valid). Each ``[[bodies]]`` entry adds a body: ``mesh`` is a mesh file (relative paths are
+relative to the scene file; omitted: the mesh given to the simulation), its placement and
+material start from ``[placement]`` and ``[material]`` and override what they list. The
+ground and plates use ``[material]`` friction and restitution; two bodies in contact use
+the mean of their frictions. ``[contact]`` tunes the contacts between bodies and between
+the disjoint pieces of one mesh (:class:`holowarp.sim.SolverVBDNeoHookean`).
+
+Plate paths in the ``"object"`` frame are fractions of the placed bodies' rest bounding
 box (``[0, 0, 0]`` its minimum corner, ``[1, 1, 1]`` its maximum corner), and so are their
 sizes; in the ``"world"`` frame they are metres.
 """
@@ -30,8 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
+from holowarp.errors import InputError
 from holowarp.sim.model import GRAVITY, ModelBuilder, euler_xyz_to_matrix
-from holowarp.sim.solver import PAPER_DT, PAPER_ITERATIONS
+from holowarp.sim.solver import CONTACT_STIFFNESS, FRICTION_EPSILON, PAPER_DT, PAPER_ITERATIONS
 
 __all__ = [
     "SceneError",
@@ -39,15 +52,18 @@ __all__ = [
     "MaterialSettings",
     "Placement",
     "PlateSpec",
+    "ContactSettings",
+    "BodySpec",
     "Scene",
     "parse_scene",
     "load_scene",
     "placement_transform",
     "build_model",
+    "solver_options",
 ]
 
 
-class SceneError(ValueError):
+class SceneError(InputError):
     """A scene file is missing, unreadable or holds a bad value; the message says where."""
 
 
@@ -97,8 +113,32 @@ class PlateSpec:
 
 
 @dataclass(frozen=True)
+class ContactSettings:
+    """Contacts between bodies and between the disjoint pieces of one mesh (``None``: the
+    solver's default, derived from the mesh)."""
+
+    radius: float | None = None  # m, contact distance
+    margin: float | None = None  # m, extra detection distance
+    stiffness: float = CONTACT_STIFFNESS  # multiple of the rest elastic stiffness
+    self_collision: bool = False  # collide a connected piece with itself (paper: off)
+    friction_epsilon: float = FRICTION_EPSILON  # m/s, friction smoothing speed
+
+
+@dataclass(frozen=True)
+class BodySpec:
+    """One body of a scene: its mesh file (``None``: the mesh given to the simulation),
+    placement and material."""
+
+    name: str
+    mesh: str | None = None
+    placement: Placement = field(default_factory=Placement)
+    material: MaterialSettings = field(default_factory=MaterialSettings)
+
+
+@dataclass(frozen=True)
 class Scene:
-    """A parsed, validated scene."""
+    """A parsed, validated scene (``bodies`` empty: one body, the given mesh, placed by
+    ``placement`` with ``material``)."""
 
     name: str
     source: str
@@ -107,6 +147,14 @@ class Scene:
     placement: Placement = field(default_factory=Placement)
     ground: bool = True
     plates: tuple = ()
+    bodies: tuple = ()
+    contact: ContactSettings = field(default_factory=ContactSettings)
+
+    def body_specs(self) -> tuple:
+        """The bodies to build: ``bodies``, or the one implicit body of a scene without them."""
+        if self.bodies:
+            return tuple(self.bodies)
+        return (BodySpec("Object", None, self.placement, self.material),)
 
     @property
     def num_steps(self) -> int:
@@ -121,7 +169,10 @@ class Scene:
 
 
 # ---------------------------------------------------------------------------- parsing
-_TOP_KEYS = {"name", "description", "sim", "material", "placement", "ground", "plates"}
+_TOP_KEYS = {"name", "description", "sim", "material", "placement", "ground", "plates", "bodies", "contact"}
+_MATERIAL_KEYS = {"youngs_modulus", "poissons_ratio", "density", "friction", "restitution"}
+_BODY_MATERIAL_KEYS = _MATERIAL_KEYS - {"restitution"}
+_PLACEMENT_KEYS = {"size", "rotation", "center_xy", "height", "velocity"}
 
 
 def _num(src, sec, key, v, *, lo=None, hi=None, lo_open=False, integer=False):
@@ -147,13 +198,14 @@ def _vec(src, sec, key, v, n):
     return tuple(_num(src, sec, key, x) for x in v)
 
 
-def _table(src, data, sec, allowed):
+def _table(src, data, sec, allowed, where=None):
     t = data.get(sec, {})
+    name = sec if where is None else f"{where}.{sec}"
     if not isinstance(t, dict):
-        raise SceneError(f"{src}: [{sec}] must be a table, got {type(t).__name__}")
+        raise SceneError(f"{src}: [{name}] must be a table, got {type(t).__name__}")
     unknown = sorted(set(t) - set(allowed))
     if unknown:
-        raise SceneError(f"{src}: [{sec}] unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
+        raise SceneError(f"{src}: [{name}] unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}")
     return t
 
 
@@ -186,27 +238,8 @@ def parse_scene(data: dict, *, source: str = "<scene>") -> Scene:
             f"second), got {sim.dt}"
         )
 
-    d = MaterialSettings()
-    t = _table(src, data, "material", {"youngs_modulus", "poissons_ratio", "density", "friction", "restitution"})
-    mat = MaterialSettings(
-        youngs_modulus=_num(src, "material", "youngs_modulus", t.get("youngs_modulus", d.youngs_modulus), lo=0.0, lo_open=True),
-        poissons_ratio=_num(src, "material", "poissons_ratio", t.get("poissons_ratio", d.poissons_ratio), lo=0.0),
-        density=_num(src, "material", "density", t.get("density", d.density), lo=0.0, lo_open=True),
-        friction=_num(src, "material", "friction", t.get("friction", d.friction), lo=0.0),
-        restitution=_num(src, "material", "restitution", t.get("restitution", d.restitution), lo=0.0, hi=1.0),
-    )
-    if not mat.poissons_ratio < 0.5:
-        raise SceneError(f"{src}: [material] poissons_ratio: must lie in [0, 0.5), got {mat.poissons_ratio}")
-
-    d = Placement()
-    t = _table(src, data, "placement", {"size", "rotation", "center_xy", "height", "velocity"})
-    pl = Placement(
-        size=_num(src, "placement", "size", t.get("size", d.size), lo=0.0),
-        rotation=_vec(src, "placement", "rotation", t.get("rotation", d.rotation), 3),
-        center_xy=_vec(src, "placement", "center_xy", t.get("center_xy", d.center_xy), 2),
-        height=_num(src, "placement", "height", t.get("height", d.height), lo=0.0),
-        velocity=_vec(src, "placement", "velocity", t.get("velocity", d.velocity), 3),
-    )
+    mat = _material(src, "material", _table(src, data, "material", _MATERIAL_KEYS), MaterialSettings())
+    pl = _placement(src, "placement", _table(src, data, "placement", _PLACEMENT_KEYS), Placement())
 
     t = _table(src, data, "ground", {"enabled"})
     ground = t.get("enabled", True)
@@ -246,7 +279,82 @@ def parse_scene(data: dict, *, source: str = "<scene>") -> Scene:
         if any(b <= a for a, b in zip(ts, ts[1:])):
             raise SceneError(f"{src}: [{sec}] path: times must strictly increase, got {ts}")
         plates.append(PlateSpec(pname, normal, rows, size, frame))
-    return Scene(name=name, source=src, sim=sim, material=mat, placement=pl, ground=ground, plates=tuple(plates))
+    contact = _contact(src, _table(src, data, "contact",
+                                   {"radius", "margin", "stiffness", "self_collision", "friction_epsilon"}))
+    bodies = _bodies(src, data.get("bodies", []), mat, pl)
+    return Scene(name=name, source=src, sim=sim, material=mat, placement=pl, ground=ground, plates=tuple(plates),
+                 bodies=bodies, contact=contact)
+
+
+def _material(src, sec, t, d: MaterialSettings) -> MaterialSettings:
+    mat = MaterialSettings(
+        youngs_modulus=_num(src, sec, "youngs_modulus", t.get("youngs_modulus", d.youngs_modulus), lo=0.0,
+                            lo_open=True),
+        poissons_ratio=_num(src, sec, "poissons_ratio", t.get("poissons_ratio", d.poissons_ratio), lo=0.0),
+        density=_num(src, sec, "density", t.get("density", d.density), lo=0.0, lo_open=True),
+        friction=_num(src, sec, "friction", t.get("friction", d.friction), lo=0.0),
+        restitution=_num(src, sec, "restitution", t.get("restitution", d.restitution), lo=0.0, hi=1.0),
+    )
+    if not mat.poissons_ratio < 0.5:
+        raise SceneError(f"{src}: [{sec}] poissons_ratio: must lie in [0, 0.5), got {mat.poissons_ratio}")
+    return mat
+
+
+def _placement(src, sec, t, d: Placement) -> Placement:
+    return Placement(
+        size=_num(src, sec, "size", t.get("size", d.size), lo=0.0),
+        rotation=_vec(src, sec, "rotation", t.get("rotation", d.rotation), 3),
+        center_xy=_vec(src, sec, "center_xy", t.get("center_xy", d.center_xy), 2),
+        height=_num(src, sec, "height", t.get("height", d.height), lo=0.0),
+        velocity=_vec(src, sec, "velocity", t.get("velocity", d.velocity), 3),
+    )
+
+
+def _contact(src, t) -> ContactSettings:
+    d = ContactSettings()
+    opt = {}
+    for key in ("radius", "margin"):
+        if key in t:  # an explicit 0 is a value, not "use the default"
+            opt[key] = _num(src, "contact", key, t[key], lo=0.0)
+    sc = t.get("self_collision", d.self_collision)
+    if not isinstance(sc, bool):
+        raise SceneError(f"{src}: [contact] self_collision: expected true or false, got {sc!r}")
+    return ContactSettings(
+        stiffness=_num(src, "contact", "stiffness", t.get("stiffness", d.stiffness), lo=0.0, lo_open=True),
+        self_collision=sc,
+        friction_epsilon=_num(src, "contact", "friction_epsilon", t.get("friction_epsilon", d.friction_epsilon),
+                              lo=0.0, lo_open=True),
+        **opt,
+    )
+
+
+def _bodies(src, raw, mat: MaterialSettings, pl: Placement) -> tuple:
+    if not isinstance(raw, list):
+        raise SceneError(f"{src}: bodies must be an array of tables ([[bodies]]), got {type(raw).__name__}")
+    out, names = [], set()
+    base = Path(src).parent
+    for k, b in enumerate(raw):
+        sec = f"bodies.{k}"
+        if not isinstance(b, dict):
+            raise SceneError(f"{src}: [[bodies]] entry {k} must be a table")
+        unknown = sorted(set(b) - {"name", "mesh", "placement", "material"})
+        if unknown:
+            raise SceneError(f"{src}: [{sec}] unknown key(s) {', '.join(unknown)}; allowed: material, mesh, name, "
+                             "placement")
+        bname = b.get("name", f"Body{k}")
+        if not isinstance(bname, str) or not bname.isidentifier() or bname in names:
+            raise SceneError(f"{src}: [{sec}] name must be a unique identifier (letters, digits, _), got {bname!r}")
+        names.add(bname)
+        mesh = b.get("mesh")
+        if mesh is not None:
+            if not isinstance(mesh, str) or not mesh:
+                raise SceneError(f"{src}: [{sec}] mesh: expected a file path, got {mesh!r}")
+            mp = Path(mesh)
+            mesh = str(mp if mp.is_absolute() else base / mp)
+        bp = _placement(src, f"{sec}.placement", _table(src, b, "placement", _PLACEMENT_KEYS, where=sec), pl)
+        bm = _material(src, f"{sec}.material", _table(src, b, "material", _BODY_MATERIAL_KEYS, where=sec), mat)
+        out.append(BodySpec(bname, mesh, bp, bm))
+    return tuple(out)
 
 
 def load_scene(name_or_path: "str | os.PathLike | Scene") -> Scene:
@@ -303,39 +411,67 @@ def placement_transform(vertices, placement: Placement) -> tuple[np.ndarray, flo
 
 
 def build_model(scene: Scene, meshes, *, transform=None, device: str = "cpu", names=None):
-    """Build the :class:`holowarp.sim.Model` of ``scene`` with one or more soft bodies.
+    """Build the :class:`holowarp.sim.Model` of ``scene``.
 
     Args:
         scene: the scene.
-        meshes: a :class:`TetMesh` or a list of them (all placed with the same transform).
-        transform: ``(rot, scale, pos)`` to place the meshes (default: from the first mesh's
-            vertices via :func:`placement_transform`; pass the reference's to share a frame).
+        meshes: one :class:`TetMesh` per body of ``scene.body_specs()`` (a list), or one
+            TetMesh used for every body. For a scene without ``[[bodies]]`` a list of k
+            meshes makes k bodies that share ``[placement]`` and ``[material]``.
+        transform: placement ``(rot, scale, pos)`` with ``world = rot @ (scale v) + pos``:
+            one for every body, or a list with one per body (``None`` entries: from the
+            body's placement). Default: for a scene without ``[[bodies]]`` one transform from
+            all the meshes' vertices together (:func:`placement_transform`); with bodies,
+            each body's from its own mesh. Pass the reference's to share a frame.
         device: Warp device.
-        names: body names.
+        names: body names (default: the scene's).
 
     Returns:
-        (model, transform, bbox (2, 3) of the placed bodies that defines plate "object" frames).
+        (model, transforms (one per body), bbox (2, 3) of the placed bodies that defines
+        plate "object" frames).
     """
     from holowarp.tetmesh import TetMesh
 
-    meshes = [meshes] if isinstance(meshes, TetMesh) else list(meshes)
-    if transform is None:
-        transform = placement_transform(np.concatenate([m.vertices for m in meshes]), scene.placement)
-    R, s, pos = transform
-    mat = scene.material
+    specs = list(scene.body_specs())
+    if isinstance(meshes, TetMesh):
+        meshes = [meshes] * len(specs)
+    meshes = list(meshes)
+    if not scene.bodies and len(meshes) > 1:
+        specs = [BodySpec(f"Body{k}", None, scene.placement, scene.material) for k in range(len(meshes))]
+        if transform is None:
+            transform = placement_transform(np.concatenate([m.vertices for m in meshes]), scene.placement)
+    if len(meshes) != len(specs):
+        raise SceneError(f"{scene.source}: the scene has {len(specs)} bodies but {len(meshes)} meshes were given")
+    if transform is None or (isinstance(transform, tuple) and len(transform) == 3 and np.ndim(transform[1]) == 0):
+        transforms = [transform] * len(specs)
+    else:
+        transforms = list(transform)
+        if len(transforms) != len(specs):
+            raise SceneError(f"{scene.source}: {len(transforms)} transforms for {len(specs)} bodies")
+    transforms = [placement_transform(m.vertices, sp.placement) if tr is None else tr
+                  for m, sp, tr in zip(meshes, specs, transforms)]
     b = ModelBuilder(gravity=scene.sim.gravity)
     placed = []
-    for k, mesh in enumerate(meshes):
+    for k, (mesh, sp, (R, s, pos)) in enumerate(zip(meshes, specs, transforms)):
+        mat = sp.material
         b.add_soft_mesh(
-            mesh, pos=pos, rot=R, scale=s, vel=scene.placement.velocity, density=mat.density,
-            youngs_modulus=mat.youngs_modulus, poissons_ratio=mat.poissons_ratio,
-            name=(names[k] if names else f"Body{k}"),
+            mesh, pos=pos, rot=R, scale=s, vel=sp.placement.velocity, density=mat.density,
+            youngs_modulus=mat.youngs_modulus, poissons_ratio=mat.poissons_ratio, friction=mat.friction,
+            name=(names[k] if names else sp.name),
         )
         placed.append((mesh.vertices * s) @ R.T + pos)
     allp = np.concatenate(placed)
     bbox = np.stack([allp.min(0), allp.max(0)])
     _add_contacts(b, scene, bbox)
-    return b.finalize(device=device), transform, bbox
+    return b.finalize(device=device), transforms, bbox
+
+
+def solver_options(scene: Scene) -> dict:
+    """Keyword arguments of :class:`holowarp.sim.SolverVBDNeoHookean` that ``scene`` sets."""
+    sim, c = scene.sim, scene.contact
+    return dict(iterations=sim.iterations, substeps=sim.substeps, damping=sim.damping, contact_radius=c.radius,
+                contact_margin=c.margin, contact_stiffness=c.stiffness, self_collision=c.self_collision,
+                friction_epsilon=c.friction_epsilon)
 
 
 def _add_contacts(b: ModelBuilder, scene: Scene, bbox):

@@ -1,38 +1,57 @@
-"""XPBD solver for stable Neo-Hookean tet meshes (Newton's ``Solver`` shape).
+"""Vertex Block Descent solver for stable Neo-Hookean tet meshes (Newton's ``Solver`` shape).
 
-``SolverXPBDNeoHookean.step(state_in, state_out, control, contacts, dt)`` advances one step
-of ``dt`` seconds in ``substeps`` substeps of ``iterations`` Gauss-Seidel iterations each.
+``SolverVBDNeoHookean.step(state_in, state_out, control, contacts, dt)`` advances one step
+of ``dt`` seconds in ``substeps`` implicit Euler substeps, each solved by ``iterations``
+Gauss-Seidel sweeps of Vertex Block Descent (Chen et al. 2024, "Vertex Block Descent").
 It reads ``state_in`` and ``control`` and writes only ``state_out`` (plus its own scratch
-arrays), so the same inputs always give the same output.
+arrays), so the same inputs always give the same output. Kernels and the maths are in
+:mod:`holowarp.kernels.sim_vbd`.
 
-Per substep (kernels in :mod:`holowarp.kernels.sim_xpbd`):
+Why VBD, and why it needs no stability plan. The solver it replaces (XPBD with the two
+stable Neo-Hookean constraints of Macklin & Müller 2021) diverged above a per-tet ratio
+``mu V h^2 sum w |grad C|^2`` of about 0.8 whatever the iteration count, because its two
+constraints have no common zero and part of the stiffness lives in their curvature, which
+XPBD's linearised update ignores; it had to add substeps with resolution and stiffness and
+soften slivers. The candidates were:
 
-1. predict positions with gravity (symplectic Euler);
-2. ``iterations`` x: project every tet's coupled deviatoric + hydrostatic stable
-   Neo-Hookean constraints (Macklin & Müller 2021) colour by colour, then push its vertices
-   out of the ground and plate half-spaces with position-level Coulomb friction; odd
-   iterations sweep the colours backwards (symmetric Gauss-Seidel);
-3. velocity update, restitution and velocity damping.
+- a corrected XPBD (one constraint per energy term that vanishes at rest, e.g. ARAP plus
+  volume): still a linearised projection per constraint, so still conditionally
+  convergent for stiff nonlinear terms, and it changes the material;
+- projective dynamics: unconditionally stable but needs a prefactored global system
+  (no sparse Cholesky in Warp) and replaces Neo-Hookean by a projection energy;
+- Newton-type implicit Euler (global Newton, PCG, line search): stable and the most
+  accurate per iteration, but each of the 16 iterations is an assembly plus a long PCG
+  solve (the paper's stiffest cases have condition numbers near 10^5 at 1/60 s);
+- Vertex Block Descent: Gauss-Seidel over vertices on the implicit Euler incremental
+  potential, the method Newton's ``SolverVBD`` implements. For the stable Neo-Hookean
+  energy a vertex's block problem has a quadratic majoriser in closed form (``det F`` is
+  affine in one vertex; the rest has bounded curvature), so every block step provably
+  lowers the potential and the iteration cannot diverge for any dt, E, nu or tet shape
+  (Newton takes a Newton block step, without that guarantee).
 
-Stability. The two constraints have no common zero (``|F| = 0`` and ``det F = gamma`` exclude
-each other); the rest state is a balance of two large opposing multipliers, and part of the
-material's stiffness lives in the constraints' curvature, which XPBD's linearised update
-ignores. The iteration is therefore only stable while the compliance dominates, i.e. while
-the substep is below roughly one shear-wave crossing of a tet. Per tet, at rest,
-``r = mu V h^2 sum_k w_k |dC_D/dx_k|^2`` must stay below :data:`STABILITY_RATIO` (measured:
-the scheme diverges for r of about 0.8 and above on regular and Kuhn-split meshes, whatever the
-iteration count). :meth:`SolverXPBDNeoHookean.plan` raises the number of substeps until
-every tet (or the ``stability_percentile``-th percentile) is below the limit, up to
-``max_substeps``; it keeps the iteration budget per step (``iterations x requested
-substeps``, rounded to the nearest whole number of iterations per substep, at least one:
-more, smaller steps are more accurate than more iterations, Macklin et al. 2019 "Small
-steps in physics simulation"); tets still above
-the limit at the cap (slivers) are softened just enough to be stable. The plan reports all
-of it (:class:`StepPlan`).
+VBD it is. Its block Hessian is ``m/h^2 I + sum V (3/2 mu' |b|^2 I + lambda' c c^T)``
+(``c = cof(F) b``), a handful of cross products per tet where Newton assembles and contracts
+a 9 x 9 Hessian. Two more choices keep it well behaved with few iterations:
 
-Inverted tets need no special case: the hydrostatic constraint ``det F - gamma`` has the
-cofactor as gradient, which stays defined through ``det F = 0`` and pushes an inverted tet
-back to positive volume. :meth:`SolverXPBDNeoHookean.tet_stats` counts them.
+- the initial guess moves every face-connected piece rigidly (its mean and angular
+  velocity), and lands pieces that would enter the ground, a plate or another piece
+  rigidly on it. A per-particle extrapolation carries the deformation rate forward and a
+  per-particle projection strains the contact layer; at 1/60 s both plant more elastic
+  energy than 16 sweeps can take out, and the velocity update turns it into bounces many
+  times the drop energy. With the rigid guess the potential's descent bounds the elastic
+  energy of a step by what it had plus the deformational kinetic energy;
+- contacts between pieces are solved inside the block problem as a convex piecewise
+  quadratic (active set), so a contact that only engages during the move is not skipped.
+
+Substeps may still be added for accuracy (implicit Euler lags free fall by ``g t h / 2``
+and damps vibrations with ``omega h > 1``; unconverged sweeps damp more), never to avoid
+divergence; :class:`StepPlan` reports what was used, and no tet is ever softened.
+
+Contacts: the ground and plates are hard half-space constraints of each vertex's block
+problem with in-block Coulomb friction; bodies, and face-disconnected pieces of one mesh,
+touch through vertex-triangle penalty contacts with IPC-style friction, detected once per
+substep with a ``wp.Bvh`` over the surface triangles' swept boxes. Self-collision inside a
+connected piece is an option (off by default, as in the paper's setup).
 """
 
 from __future__ import annotations
@@ -42,16 +61,45 @@ from dataclasses import dataclass
 import numpy as np
 
 from holowarp.device import init_warp
+from holowarp.errors import InputError
 
-__all__ = ["SolverXPBDNeoHookean", "StepPlan", "PAPER_DT", "PAPER_ITERATIONS", "STABILITY_RATIO"]
+__all__ = [
+    "SolverVBDNeoHookean",
+    "StepPlan",
+    "PAPER_DT",
+    "PAPER_ITERATIONS",
+    "CONTACT_RADIUS_FRACTION",
+    "CONTACT_MARGIN_FRACTION",
+    "CONTACT_STIFFNESS",
+    "FRICTION_EPSILON",
+]
 
 #: method.md §10 (the paper's Isaac Sim setup): 60 steps per second, 16 solver iterations.
 PAPER_DT = 1.0 / 60.0
 PAPER_ITERATIONS = 16
 
-#: Largest per-tet ratio r (module docstring) a substep may reach; divergence was measured
-#: from about 0.8, so this keeps a margin of 1.6.
-STABILITY_RATIO = 0.5
+#: Default contact radius r as a fraction of the median boundary edge: touching bodies rest
+#: this far apart.
+CONTACT_RADIUS_FRACTION = 0.05
+#: Default detection margin beyond the predicted motion, as a fraction of the median
+#: boundary edge (covers what the elastic response adds to the inertial prediction).
+CONTACT_MARGIN_FRACTION = 0.5
+#: Default penalty stiffness as a multiple of the stiffer side's rest elastic stiffness:
+#: a contact yields 1/10 of what the material next to it would under the same load.
+CONTACT_STIFFNESS = 10.0
+#: Default friction smoothing, m/s: relative tangential speeds below it are resisted
+#: viscously (IPC's eps_v); above it friction is Coulomb's.
+FRICTION_EPSILON = 1.0e-3
+#: Default self-collision exclusion, in median boundary edges: points of one connected
+#: piece closer than this at rest never collide with each other.
+SELF_EXCLUSION_EDGES = 1.5
+
+#: Contact hops over which pieces learn they rest on a supported piece (stack height the
+#: rigid landing of the initial guess handles in order).
+_SUPPORT_HOPS = 4
+#: Rounds of piece-on-piece landing of the initial guess (each lets a stack settle one
+#: more level).
+_BODY_LANDING_ROUNDS = 3
 
 #: Approach speeds below this many g*dt do not bounce (restitution), so resting contact
 #: does not jitter (Müller et al. 2020, "Detailed Rigid Body Simulation with XPBD").
@@ -60,128 +108,294 @@ _BOUNCE_THRESHOLD_G_DT = 2.0
 
 @dataclass(frozen=True)
 class StepPlan:
-    """How one step of a given length is split (see :meth:`SolverXPBDNeoHookean.plan`).
+    """How one step of a given length is split (see :meth:`SolverVBDNeoHookean.plan`).
 
     Attributes:
         dt: step length, s.
-        substeps: substeps per step actually used.
-        iterations: Gauss-Seidel iterations per substep actually used.
-        requested_substeps, requested_iterations: what the solver was built with.
-        softened_tets: tets whose stiffness is scaled down for stability at this substep.
-        min_stiffness_scale: smallest such scale (1 when none).
+        substeps: substeps per step.
+        iterations: Gauss-Seidel iterations per substep.
+        softened_tets: tets whose stiffness was changed for stability: always 0 (the
+            solver is unconditionally stable; kept so reports say so).
+        solver: ``"vbd"``.
     """
 
     dt: float
     substeps: int
     iterations: int
-    requested_substeps: int
-    requested_iterations: int
-    softened_tets: int
-    min_stiffness_scale: float
+    softened_tets: int = 0
+    solver: str = "vbd"
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
 
 
-class SolverXPBDNeoHookean:
-    """Extended position-based dynamics with stable Neo-Hookean tet constraints.
+class SolverVBDNeoHookean:
+    """Implicit Euler by Vertex Block Descent with stable Neo-Hookean tets and contacts.
 
     Args:
         model: the :class:`holowarp.sim.Model`.
-        iterations: Gauss-Seidel iterations per substep (paper: 16).
-        substeps: substeps per :meth:`step`.
+        iterations: Gauss-Seidel sweeps per substep (paper: 16).
+        substeps: substeps per :meth:`step` (paper: 1).
         damping: velocity damping rate in 1/s; velocities are scaled by
-            ``max(0, 1 - damping * dt_substep)`` each substep.
-        stability: ``"auto"``: raise substeps and soften outlier tets as described in the
-            module docstring; ``"off"``: use ``substeps`` and ``iterations`` as given.
-        stability_percentile: percentile of the per-tet ratio that the substep count must
-            bring below :data:`STABILITY_RATIO`; tets above it are softened.
-        max_substeps: cap on the automatically raised substep count.
-        fuse_colors: launch all colours in one kernel launch per iteration. Only valid where
+            ``max(0, 1 - damping * h)`` each substep of length h.
+        contact_radius: body-body contact distance r in m (default
+            :data:`CONTACT_RADIUS_FRACTION` of the median boundary edge). 0 is allowed
+            (bodies then rest in exact contact, penetrating by their load over the penalty
+            stiffness).
+        contact_margin: extra detection distance in m (default
+            :data:`CONTACT_MARGIN_FRACTION` of the median boundary edge).
+        contact_stiffness: penalty stiffness as a multiple of the particles' rest elastic
+            stiffness (:data:`CONTACT_STIFFNESS`).
+        self_collision: also collide a connected piece with itself (pairs farther apart
+            than ``self_collision_exclusion`` at rest).
+        self_collision_exclusion: m (default :data:`SELF_EXCLUSION_EDGES` median edges).
+        friction_epsilon: friction smoothing speed in m/s (:data:`FRICTION_EPSILON`).
+        fuse_colors: sweep all colours in one kernel launch per iteration. Only valid where
             a launch runs its threads serially in index order (Warp's CPU backend), where it
-            gives bit-identical results to per-colour launches. ``None``: on CPU only.
+            gives the per-colour result. ``None``: on CPU only.
     """
 
-    def __init__(self, model, *, iterations: int = PAPER_ITERATIONS, substeps: int = 1,
-                 damping: float = 0.0, stability: str = "auto", stability_percentile: float = 100.0,
-                 max_substeps: int = 64, fuse_colors: bool | None = None):
+    def __init__(self, model, *, iterations: int = PAPER_ITERATIONS, substeps: int = 1, damping: float = 0.0,
+                 contact_radius: float | None = None, contact_margin: float | None = None,
+                 contact_stiffness: float = CONTACT_STIFFNESS, self_collision: bool = False,
+                 self_collision_exclusion: float | None = None, friction_epsilon: float = FRICTION_EPSILON,
+                 fuse_colors: bool | None = None):
         wp = init_warp()
-        if int(iterations) < 1:
-            raise ValueError(f"iterations must be >= 1, got {iterations}")
-        if int(substeps) < 1:
-            raise ValueError(f"substeps must be >= 1, got {substeps}")
+        if int(iterations) != iterations or int(iterations) < 1:
+            raise InputError(f"iterations must be an integer >= 1, got {iterations}")
+        if int(substeps) != substeps or int(substeps) < 1:
+            raise InputError(f"substeps must be an integer >= 1, got {substeps}")
         if not np.isfinite(damping) or damping < 0:
-            raise ValueError(f"damping must be >= 0 (1/s), got {damping}")
+            raise InputError(f"damping must be >= 0 (1/s), got {damping}")
+        edge = model.median_surface_edge()
+        r = CONTACT_RADIUS_FRACTION * edge if contact_radius is None else float(contact_radius)
+        margin = CONTACT_MARGIN_FRACTION * edge if contact_margin is None else float(contact_margin)
+        excl = SELF_EXCLUSION_EDGES * edge if self_collision_exclusion is None else float(self_collision_exclusion)
+        for name, v in (("contact_radius", r), ("contact_margin", margin), ("self_collision_exclusion", excl)):
+            if not np.isfinite(v) or v < 0:
+                raise InputError(f"{name} must be >= 0 m, got {v}")
+        if not np.isfinite(contact_stiffness) or contact_stiffness <= 0:
+            raise InputError(f"contact_stiffness must be > 0, got {contact_stiffness}")
+        if not np.isfinite(friction_epsilon) or friction_epsilon <= 0:
+            raise InputError(f"friction_epsilon must be > 0 m/s, got {friction_epsilon}")
         self.model = model
         self.iterations = int(iterations)
         self.substeps = int(substeps)
         self.damping = float(damping)
-        if stability not in ("auto", "off"):
-            raise ValueError(f"stability must be 'auto' or 'off', got {stability!r}")
-        if not 0.0 < stability_percentile <= 100.0:
-            raise ValueError(f"stability_percentile must lie in (0, 100], got {stability_percentile}")
-        self.stability = stability
-        self.stability_percentile = float(stability_percentile)
-        self.max_substeps = max(int(max_substeps), self.substeps)
-        self._ratio1 = _stability_ratio_unit_step(model)  # [M] r at h = 1 s
-        self._plans: dict[float, tuple[StepPlan, object]] = {}
+        self.contact_radius = r
+        self.contact_margin = margin
+        self.contact_stiffness = float(contact_stiffness)
+        self.self_collision = bool(self_collision)
+        self.self_collision_exclusion = excl
+        self.friction_epsilon = float(friction_epsilon)
         is_cpu = wp.get_device(model.device).is_cpu
         if fuse_colors is None:
             fuse_colors = is_cpu
         if fuse_colors and not is_cpu:
             raise ValueError("fuse_colors=True is only valid on the CPU (serial launches)")
         self.fuse_colors = bool(fuse_colors)
+
+        self._init_arrays()
+        self.contacts_enabled = model.component_count >= 2 or self.self_collision
+        self._init_contacts()
+
+    def _init_arrays(self) -> None:
+        """Scratch arrays, sweeps and the kernels' structs."""
+        from holowarp.kernels import sim_vbd as K
+
+        wp = init_warp()
+        model = self.model
         dev = model.device
-        N, M = model.particle_count, model.tet_count
+        N = model.particle_count
         S = max(model.surface_count, 1)
         self._q_start = wp.zeros(N, dtype=wp.vec3, device=dev)
         self._qd_start = wp.zeros(N, dtype=wp.vec3, device=dev)
-        self._depth = wp.zeros((N, S), dtype=float, device=dev)
-        self._fric = wp.zeros((N, S), dtype=wp.vec3, device=dev)
-        self._lambdas = wp.zeros(M, dtype=wp.vec2, device=dev)
+        self._inertia = wp.zeros(N, dtype=wp.vec3, device=dev)
+        self._surf_force = wp.zeros((N, S), dtype=wp.vec3, device=dev)
         self._stats = wp.zeros(2, dtype=float, device=dev)
-        offs = model.tet_color_offsets
-        M = int(offs[-1])
+        C = max(model.component_count, 1)
+        self._depth_cs = wp.zeros((C, S), dtype=float, device=dev)
+        self._shift = wp.zeros(C, dtype=wp.vec3, device=dev)
+        self._shift_pos = wp.zeros(C, dtype=wp.vec3, device=dev)
+        self._shift_neg = wp.zeros(C, dtype=wp.vec3, device=dev)
+        self._eff_disp = wp.zeros(C, dtype=wp.vec3, device=dev)
+        self._level = wp.zeros(C, dtype=wp.int32, device=dev)
+        free = np.ones(C, np.int32)
+        free[np.unique(model.components[model.fixed])] = 0
+        self._component_free = wp.array(free, dtype=wp.int32, device=dev)
+        self._sum_m = wp.zeros(C, dtype=float, device=dev)
+        self._sum_mx = wp.zeros(C, dtype=wp.vec3, device=dev)
+        self._sum_mv = wp.zeros(C, dtype=wp.vec3, device=dev)
+        self._sum_ma = wp.zeros(C, dtype=wp.vec3, device=dev)
+        self._ang = wp.zeros(C, dtype=wp.vec3, device=dev)
+        self._inertia_tensor = wp.zeros(C, dtype=wp.mat33, device=dev)
+        self._com = wp.zeros(C, dtype=wp.vec3, device=dev)
+        self._disp = wp.zeros(C, dtype=wp.vec3, device=dev)
+        self._rot = wp.zeros(C, dtype=wp.mat33, device=dev)
+
+        offs = model.particle_color_offsets
         if self.fuse_colors:
-            fwd = [(0, M)]
+            fwd = [(0, N)]
         else:
             fwd = [(int(offs[c]), int(offs[c + 1] - offs[c])) for c in range(len(offs) - 1)]
-        # Symmetric Gauss-Seidel: odd iterations sweep the colours (and the tets in them) in
-        # reverse, so no direction of the mesh is favoured by the sweep order.
-        rev_order = wp.array(model.tet_color_order.numpy()[::-1].copy(), dtype=wp.int32, device=dev)
-        rev = [(M - off - cnt, cnt) for off, cnt in reversed(fwd)]
-        self._sweeps = [(model.tet_color_order, fwd), (rev_order, rev)]
+        # Symmetric Gauss-Seidel: odd iterations sweep the colours (and the vertices in them)
+        # in reverse, so no direction of the mesh is favoured by the sweep order.
+        rev_order = wp.array(model.particle_color_order.numpy()[::-1].copy(), dtype=wp.int32, device=dev)
+        rev = [(N - off - cnt, cnt) for off, cnt in reversed(fwd)]
+        self._sweeps = [(model.particle_color_order, fwd), (rev_order, rev)]
 
-    def plan(self, dt: float) -> StepPlan:
-        """The substeps, iterations and softened tets used for steps of ``dt`` seconds."""
-        return self._plan(dt)[0]
+        t = K.TetData()
+        t.indices = model.tet_indices
+        t.dm_inv = model.tet_dm_inv
+        t.mu_v = model.tet_mu_v
+        t.lam_v = model.tet_lam_v
+        t.alpha = model.tet_alpha
+        t.adj_offsets = model.particle_adj_offsets
+        t.adj = model.particle_adj
+        self._tets = t
 
-    def _plan(self, dt: float):
-        dt = float(dt)
-        hit = self._plans.get(dt)
-        if hit is not None:
-            return hit
+        s = K.SurfaceData()
+        s.count = model.surface_count
+        s.normal = model.surface_normal
+        s.friction = model.surface_friction
+        s.start = s.end = model.surface_normal  # replaced by the control's arrays each step
+        s.alpha0, s.alpha1 = 0.0, 1.0
+        self._surf = s
+
+    # ------------------------------------------------------------------ contacts
+    def _init_contacts(self) -> None:
+        from holowarp.kernels import sim_vbd as K
+
         wp = init_warp()
-        S, I = self.substeps, self.iterations
-        r1 = self._ratio1
-        if self.stability == "auto" and len(r1):
-            rp = float(np.percentile(r1, self.stability_percentile))
-            need = int(np.ceil(dt * np.sqrt(rp / STABILITY_RATIO) - 1e-9)) if rp > 0 else 1
-            if need > S:
-                S_new = min(need, self.max_substeps)
-                I = max(1, int(np.floor(self.iterations * self.substeps / S_new + 0.5)))
-                S = S_new
-        h = dt / S
-        scale = np.ones(len(r1))
-        if self.stability == "auto":
-            r = r1 * h * h
-            over = r > STABILITY_RATIO
-            scale[over] = STABILITY_RATIO / r[over]
-        plan = StepPlan(dt, S, I, self.substeps, self.iterations, int((scale < 1).sum()),
-                        float(scale.min()) if len(scale) else 1.0)
-        arr = wp.array(scale.astype(np.float32), dtype=float, device=self.model.device)
-        self._plans[dt] = (plan, arr)
-        return plan, arr
+        m = self.model
+        dev = m.device
+        N = m.particle_count
+        Kc = K.MAX_CONTACTS
+        c = K.ContactData()
+        c.enabled = int(self.contacts_enabled)
+        c.radius = self.contact_radius
+        c.friction_eps = self.friction_epsilon / 60.0
+        c.tri = m.tri_indices
+        if not self.contacts_enabled:
+            z = wp.zeros(1, dtype=wp.int32, device=dev)
+            c.slot_count = wp.zeros(N, dtype=wp.int32, device=dev)
+            c.slot_tri = wp.zeros((1, Kc), dtype=wp.int32, device=dev)
+            c.slot_w = wp.zeros((1, Kc), dtype=wp.vec3, device=dev)
+            c.slot_n = wp.zeros((1, Kc), dtype=wp.vec3, device=dev)
+            c.slot_k = wp.zeros((1, Kc), dtype=float, device=dev)
+            c.slot_mu = wp.zeros((1, Kc), dtype=float, device=dev)
+            c.rev_offsets = wp.zeros(N + 1, dtype=wp.int32, device=dev)
+            c.rev = z
+            self._con = c
+            return
+        T = len(m.tris)
+        Vs = m.surface_vertices.shape[0]
+        c.slot_count = wp.zeros(N, dtype=wp.int32, device=dev)
+        c.slot_tri = wp.zeros((N, Kc), dtype=wp.int32, device=dev)
+        c.slot_w = wp.zeros((N, Kc), dtype=wp.vec3, device=dev)
+        c.slot_n = wp.zeros((N, Kc), dtype=wp.vec3, device=dev)
+        c.slot_k = wp.zeros((N, Kc), dtype=float, device=dev)
+        c.slot_mu = wp.zeros((N, Kc), dtype=float, device=dev)
+        c.rev_offsets = wp.zeros(N + 1, dtype=wp.int32, device=dev)
+        c.rev = wp.zeros(max(Vs * Kc * 3, 1), dtype=wp.int32, device=dev)
+        self._con = c
+        self._slot_comp = wp.zeros((N, Kc), dtype=wp.int32, device=dev)
+        self._slot_d2 = wp.zeros((N, Kc), dtype=float, device=dev)
+        self._rev_count = wp.zeros(N + 1, dtype=wp.int32, device=dev)
+        self._rev_cursor = wp.zeros(N, dtype=wp.int32, device=dev)
+        self._contact_k = wp.array((self.contact_stiffness * m.particle_stiffness_host).astype(np.float32),
+                                   dtype=float, device=dev)
+        self._rest = wp.array(m.rest_positions.astype(np.float32), dtype=wp.vec3, device=dev)
+        self._vnormal = wp.zeros(N, dtype=wp.vec3, device=dev)
+        self._tri_adj = wp.array(_triangle_neighbours(m.tris), dtype=wp.int32, device=dev)
+        self._tri_lo = wp.zeros(T, dtype=wp.vec3, device=dev)
+        self._tri_hi = wp.zeros(T, dtype=wp.vec3, device=dev)
+        wp.launch(K.vbd_triangle_bounds, dim=T, inputs=[m.particle_q, m.particle_q, m.tri_indices, 0.0],
+                  outputs=[self._tri_lo, self._tri_hi], device=dev)
+        self._bvh = wp.Bvh(self._tri_lo, self._tri_hi)
+
+    def _detect(self, guess) -> None:
+        """Contacts of this substep from the start positions and the initial guess."""
+        from holowarp.kernels import sim_vbd as K
+
+        wp = init_warp()
+        m = self.model
+        dev = m.device
+        c = self._con
+        pad = self.contact_radius + self.contact_margin
+        wp.launch(K.vbd_triangle_bounds, dim=len(m.tris), inputs=[self._q_start, guess, m.tri_indices, pad],
+                  outputs=[self._tri_lo, self._tri_hi], device=dev)
+        self._bvh.refit()
+        self._vnormal.zero_()
+        wp.launch(K.vbd_vertex_normals, dim=len(m.tris), inputs=[self._q_start, m.tri_indices],
+                  outputs=[self._vnormal], device=dev)
+        Vs = m.surface_vertices.shape[0]
+        wp.launch(K.vbd_detect_contacts, dim=Vs, inputs=[
+            self._bvh.id, m.surface_vertices, self._q_start, guess, self._rest, m.particle_component,
+            m.tri_indices, m.tri_component, self._tri_adj, self._vnormal, int(self.self_collision),
+            self.self_collision_exclusion,
+            self._contact_k, m.particle_friction, self._slot_comp, self._slot_d2,
+        ], outputs=[c.slot_count, c.slot_tri, c.slot_w, c.slot_n, c.slot_k, c.slot_mu], device=dev)
+        self._rev_count.zero_()
+        wp.launch(K.vbd_count_reverse_contacts, dim=Vs,
+                  inputs=[m.surface_vertices, c.slot_count, c.slot_tri, m.tri_indices], outputs=[self._rev_count],
+                  device=dev)
+        wp.utils.array_scan(self._rev_count, c.rev_offsets, inclusive=False)
+        self._rev_cursor.zero_()
+        wp.launch(K.vbd_fill_reverse_contacts, dim=Vs,
+                  inputs=[m.surface_vertices, c.slot_count, c.slot_tri, m.tri_indices, c.rev_offsets,
+                          self._rev_cursor], outputs=[c.rev], device=dev)
+
+    def _land(self, guess, h: float) -> None:
+        """Land the rigid initial guess on the ground, the plates and other pieces (see the
+        kernels), then detect this substep's body contacts."""
+        from holowarp.kernels import sim_vbd as K
+
+        wp = init_warp()
+        m = self.model
+        dev = m.device
+        N = m.particle_count
+        C = self._shift.shape[0]
+        surf = self._surf
+        self._depth_cs.fill_(-1.0e30)
+        if m.surface_count:
+            wp.launch(K.vbd_guess_depth, dim=N, inputs=[guess, m.particle_component, surf],
+                      outputs=[self._depth_cs], device=dev)
+        touch = self.contact_radius + self.contact_margin
+        wp.launch(K.vbd_land_components, dim=C, inputs=[self._component_free, self._disp, self._sum_m, self._sum_ma,
+                                                         wp.vec3(*map(float, m.gravity)), h, surf, self._depth_cs,
+                                                         touch],
+                  outputs=[self._shift, self._eff_disp, self._level], device=dev)
+        wp.launch(K.vbd_apply_shift, dim=N, inputs=[guess, m.particle_inv_mass, m.particle_component,
+                                                     self._component_free, self._shift], device=dev)
+        if self.contacts_enabled:
+            self._detect(guess)
+            Vs = m.surface_vertices.shape[0]
+            c = self._con
+            for _ in range(_SUPPORT_HOPS):
+                wp.launch(K.vbd_support_levels, dim=Vs, inputs=[
+                    m.surface_vertices, m.particle_component, c.slot_count, c.slot_tri, m.tri_component,
+                ], outputs=[self._level], device=dev)
+            for _ in range(_BODY_LANDING_ROUNDS):
+                self._shift_pos.zero_()
+                self._shift_neg.zero_()
+                wp.launch(K.vbd_body_landing, dim=Vs, inputs=[
+                    m.surface_vertices, guess, m.particle_component, self._component_free, self._sum_m, self._level,
+                    self._eff_disp, c, m.tri_component,
+                ], outputs=[self._shift_pos, self._shift_neg], device=dev)
+                wp.launch(K.vbd_merge_shift, dim=C, inputs=[self._shift_pos, self._shift_neg],
+                          outputs=[self._shift, self._eff_disp], device=dev)
+                wp.launch(K.vbd_apply_shift, dim=N, inputs=[guess, m.particle_inv_mass, m.particle_component,
+                                                             self._component_free, self._shift], device=dev)
+        if m.surface_count:
+            wp.launch(K.vbd_guess_project, dim=N, inputs=[guess, m.particle_inv_mass, surf], device=dev)
+
+    # ------------------------------------------------------------------ stepping
+    def plan(self, dt: float) -> StepPlan:
+        """The substeps and iterations used for steps of ``dt`` seconds."""
+        if not dt > 0:
+            raise ValueError(f"dt must be > 0 s, got {dt}")
+        return StepPlan(float(dt), self.substeps, self.iterations)
 
     def step(self, state_in, state_out, control, contacts, dt: float) -> None:
         """Advance ``state_in`` by ``dt`` seconds into ``state_out``.
@@ -190,71 +404,71 @@ class SolverXPBDNeoHookean:
             state_in: read only.
             state_out: overwritten (may not be ``state_in``).
             control: surface poses for this step (:meth:`Control.set_time`).
-            contacts: must be ``None``: the ground and plates are analytic half-spaces whose
-                contacts the step generates itself (kept for Newton's signature).
+            contacts: must be ``None``: ground, plate and body contacts are generated inside
+                the step (kept for Newton's signature).
             dt: step length in seconds.
         """
-        from holowarp.kernels import sim_xpbd as K
+        from holowarp.kernels import sim_vbd as K
 
         wp = init_warp()
         if contacts is not None:
-            raise ValueError("contacts must be None: ground and plate contacts are generated inside step")
+            raise ValueError("contacts must be None: contacts are generated inside step")
         if state_out is state_in:
             raise ValueError("state_out must be a different State from state_in")
         if not dt > 0:
             raise ValueError(f"dt must be > 0 s, got {dt}")
         m = self.model
         dev = m.device
-        plan, stiff = self._plan(dt)
-        n_sub = plan.substeps
+        n_sub = self.substeps
         h = float(dt) / n_sub
-        S = m.surface_count
         damp = max(0.0, 1.0 - self.damping * h)
         thresh = _BOUNCE_THRESHOLD_G_DT * float(np.linalg.norm(m.gravity)) * h
         g = wp.vec3(*map(float, m.gravity))
+        surf = self._surf
+        surf.start = control.surface_start
+        surf.end = control.surface_end
+        con = self._con
+        con.friction_eps = self.friction_epsilon * h
         state_out.surface_force.zero_()
+        N = m.particle_count
         for k in range(n_sub):
             src = state_in if k == 0 else state_out
-            a0, a1 = k / n_sub, (k + 1) / n_sub
-            wp.launch(
-                K.sim_predict,
-                dim=m.particle_count,
-                inputs=[src.particle_q, src.particle_qd, m.particle_inv_mass, g, h, S],
-                outputs=[state_out.particle_q, self._q_start, self._qd_start, self._depth, self._fric],
-                device=dev,
-            )
-            for it in range(plan.iterations):
+            surf.alpha0, surf.alpha1 = k / n_sub, (k + 1) / n_sub
+            for a in (self._sum_m, self._sum_mx, self._sum_mv, self._sum_ma, self._ang, self._inertia_tensor):
+                a.zero_()
+            wp.launch(K.vbd_predict, dim=N, inputs=[
+                src.particle_q, src.particle_qd, src.particle_qdd, m.particle_mass, m.particle_inv_mass,
+                m.particle_component, g, h, surf,
+            ], outputs=[self._q_start, self._qd_start, self._inertia, self._surf_force, self._sum_m, self._sum_mx,
+                        self._sum_mv, self._sum_ma], device=dev)
+            wp.launch(K.vbd_component_inertia, dim=N, inputs=[
+                self._q_start, self._qd_start, m.particle_mass, m.particle_component, self._sum_m, self._sum_mx,
+            ], outputs=[self._ang, self._inertia_tensor], device=dev)
+            wp.launch(K.vbd_component_motion, dim=self._sum_m.shape[0], inputs=[
+                self._sum_m, self._sum_mx, self._sum_mv, self._sum_ma, self._ang, self._inertia_tensor, g, h,
+            ], outputs=[self._com, self._disp, self._rot], device=dev)
+            wp.launch(K.vbd_rigid_guess, dim=N, inputs=[
+                self._q_start, self._qd_start, src.particle_qdd, m.particle_inv_mass, m.particle_component,
+                self._component_free, self._com, self._disp, self._rot, g, h,
+            ], outputs=[state_out.particle_q], device=dev)
+            self._land(state_out.particle_q, h)
+            for it in range(self.iterations):
                 order, launches = self._sweeps[it % 2]
                 for off, cnt in launches:
-                    wp.launch(
-                        K.sim_solve_tets,
-                        dim=cnt,
-                        inputs=[
-                            order, off, state_out.particle_q, m.particle_inv_mass,
-                            m.tet_indices, m.tet_dm_inv, m.tet_volume, m.tet_mu, m.tet_lambda, stiff,
-                            self._lambdas, int(it == 0), 1.0 / (h * h), self._q_start, m.surface_normal,
-                            control.surface_start, control.surface_end, a0, a1, S, m.surface_friction,
-                            self._depth, self._fric,
-                        ],
-                        device=dev,
-                    )
-            wp.launch(
-                K.sim_finalize,
-                dim=m.particle_count,
-                inputs=[
-                    state_out.particle_q, self._q_start, self._qd_start, m.particle_inv_mass,
-                    m.particle_mass, m.surface_normal, control.surface_start, control.surface_end,
-                    a0, a1, m.surface_friction, m.surface_restitution, S, self._depth, self._fric, h, thresh,
-                    damp, 1.0 / (h * h * n_sub),
-                ],
-                outputs=[state_out.particle_qd, state_out.surface_force],
-                device=dev,
-            )
+                    wp.launch(K.vbd_solve_vertices, dim=cnt, inputs=[
+                        order, off, state_out.particle_q, self._q_start, self._inertia, m.particle_mass,
+                        m.particle_inv_mass, 1.0 / (h * h), self._tets, surf, con, self._surf_force,
+                    ], device=dev)
+            wp.launch(K.vbd_finalize, dim=N, inputs=[
+                state_out.particle_q, self._q_start, self._qd_start, m.particle_inv_mass, surf,
+                m.surface_restitution, self._surf_force, h, thresh, damp, 1.0 / n_sub,
+            ], outputs=[state_out.particle_qd, state_out.particle_qdd, state_out.surface_force], device=dev)
 
+    # ------------------------------------------------------------------ measurements
     def tet_stats(self, state) -> tuple[int, float]:
         """(number of tets with signed volume <= 0, total signed volume in m³) of ``state``.
         Synchronises with the device."""
-        from holowarp.kernels import sim_xpbd as K
+        from holowarp.kernels import sim_vbd as K
 
         wp = init_warp()
         m = self.model
@@ -267,34 +481,92 @@ class SolverXPBDNeoHookean:
     def elastic_forces(self, state) -> tuple[np.ndarray, float]:
         """Elastic forces (N, 3) in N and energy in J of the stable Neo-Hookean material at
         ``state``'s positions (zero forces and energy at rest and under rigid motions)."""
-        from holowarp.kernels import sim_xpbd as K
+        from holowarp.kernels import sim_vbd as K
 
         wp = init_warp()
         m = self.model
         f = wp.zeros(m.particle_count, dtype=wp.vec3, device=m.device)
         e = wp.zeros(1, dtype=float, device=m.device)
-        wp.launch(
-            K.sim_tet_forces,
-            dim=m.tet_count,
-            inputs=[state.particle_q, m.tet_indices, m.tet_dm_inv, m.tet_volume, m.tet_mu, m.tet_lambda],
-            outputs=[f, e],
-            device=m.device,
-        )
+        wp.launch(K.sim_tet_forces, dim=m.tet_count,
+                  inputs=[state.particle_q, m.tet_indices, m.tet_dm_inv, m.tet_volume, m.tet_mu, m.tet_lambda],
+                  outputs=[f, e], device=m.device)
         return f.numpy().astype(np.float64), float(e.numpy()[0])
 
+    def penetration(self, state, surface_points=None) -> dict:
+        """How far ``state`` violates the contacts, in metres.
 
-def _stability_ratio_unit_step(model) -> np.ndarray:
-    """Per-tet ``r`` of the module docstring at h = 1 s: ``mu V sum_k w_k |b_k|^2 / 3``, where
-    ``b_k`` are the rest shape-function gradients (rows of Dm^-1, b_0 = -sum) and
-    ``dC_D/dx_k = b_k / sqrt(3)`` at rest. (M,) float64."""
-    T = model.tets
-    X = model.rest_positions
-    if len(T) == 0:
-        return np.zeros(0)
-    Dm = np.stack([X[T[:, 1]] - X[T[:, 0]], X[T[:, 2]] - X[T[:, 0]], X[T[:, 3]] - X[T[:, 0]]], axis=2)
-    Di = np.linalg.inv(Dm)  # [M, 3, 3]; row k-1 is b_k
-    b = np.concatenate([-Di.sum(axis=1, keepdims=True), Di], axis=1)  # [M, 4, 3]
-    w = np.where(model.fixed, 0.0, 1.0 / model.masses)[T]  # [M, 4]
-    a_dd = (w * (b * b).sum(axis=2)).sum(axis=1) / 3.0
-    mu = model.tet_mu_host
-    return mu * model.tet_volume_host * a_dd
+        Args:
+            state: the state to measure.
+            surface_points: (S, 3) contact-plane points at the state's time (default: the
+                model's at t = 0).
+
+        Returns:
+            ``{"bodies": the deepest a surface vertex lies inside another face-connected
+            component (inside one of its tets, measured to its surface; 0 for a single
+            piece), "surfaces": the deepest a particle lies behind the ground or a plate,
+            "max": the larger of the two, "vertices_inside": how many surface vertices are
+            inside another component}``. Synchronises with the device.
+        """
+        from holowarp.kernels import sim_vbd as K
+
+        wp = init_warp()
+        m = self.model
+        dev = m.device
+        x = state.positions()
+        pen_s = 0.0
+        if m.surface_count:
+            pts = m.surface_points(0.0) if surface_points is None else np.asarray(surface_points, np.float64)
+            dist = np.einsum("nsk,sk->ns", x[:, None, :] - pts[None], m.surface_normals())
+            pen_s = float(max(0.0, -dist.min()))
+        pen_b, inside = 0.0, 0
+        if m.component_count >= 2:
+            if not hasattr(self, "_tet_bvh"):
+                self._tet_lo = wp.zeros(m.tet_count, dtype=wp.vec3, device=dev)
+                self._tet_hi = wp.zeros(m.tet_count, dtype=wp.vec3, device=dev)
+                wp.launch(K.vbd_tet_bounds, dim=m.tet_count, inputs=[state.particle_q, m.tet_indices],
+                          outputs=[self._tet_lo, self._tet_hi], device=dev)
+                self._tet_bvh = wp.Bvh(self._tet_lo, self._tet_hi)
+                self._mtri_lo = wp.zeros(len(m.tris), dtype=wp.vec3, device=dev)
+                self._mtri_hi = wp.zeros(len(m.tris), dtype=wp.vec3, device=dev)
+                wp.launch(K.vbd_triangle_bounds, dim=len(m.tris),
+                          inputs=[state.particle_q, state.particle_q, m.tri_indices, 0.0],
+                          outputs=[self._mtri_lo, self._mtri_hi], device=dev)
+                self._mtri_bvh = wp.Bvh(self._mtri_lo, self._mtri_hi)
+                self._depth = wp.zeros(m.surface_vertices.shape[0], dtype=float, device=dev)
+            wp.launch(K.vbd_tet_bounds, dim=m.tet_count, inputs=[state.particle_q, m.tet_indices],
+                      outputs=[self._tet_lo, self._tet_hi], device=dev)
+            self._tet_bvh.refit()
+            wp.launch(K.vbd_triangle_bounds, dim=len(m.tris),
+                      inputs=[state.particle_q, state.particle_q, m.tri_indices, 0.0],
+                      outputs=[self._mtri_lo, self._mtri_hi], device=dev)
+            self._mtri_bvh.refit()
+            wp.launch(K.vbd_penetration, dim=m.surface_vertices.shape[0], inputs=[
+                self._tet_bvh.id, self._mtri_bvh.id, m.surface_vertices, state.particle_q, m.particle_component,
+                m.tet_indices, m.tet_component, m.tri_indices, m.tri_component, m.median_surface_edge(),
+            ], outputs=[self._depth], device=dev)
+            dep = self._depth.numpy()
+            pen_b = float(dep.max()) if len(dep) else 0.0
+            inside = int((dep > 0).sum())
+        return {"bodies": pen_b, "surfaces": pen_s, "max": max(pen_b, pen_s), "vertices_inside": inside}
+
+
+def _triangle_neighbours(tris: np.ndarray) -> np.ndarray:
+    """(T, 3) int32: the triangle sharing edge (k, k+1) of each triangle, -1 where the edge
+    has no other triangle or more than one (non-manifold)."""
+    T = len(tris)
+    out = np.full((T, 3), -1, np.int32)
+    if T == 0:
+        return out
+    e = np.stack([tris, np.roll(tris, -1, axis=1)], axis=2).reshape(-1, 2).astype(np.int64)  # [3T, 2]
+    key = np.minimum(e[:, 0], e[:, 1]) * (int(tris.max()) + 1) + np.maximum(e[:, 0], e[:, 1])
+    order = np.argsort(key, kind="stable")
+    sk = key[order]
+    counts = np.bincount(np.unique(sk, return_inverse=True)[1])
+    grp = np.unique(sk, return_inverse=True)[1]
+    pair = (counts[grp] == 2)
+    first = pair & np.r_[True, sk[1:] != sk[:-1]]
+    a, b = order[np.flatnonzero(first)], order[np.flatnonzero(first) + 1]
+    flat = out.reshape(-1)
+    flat[a] = b // 3
+    flat[b] = a // 3
+    return out

@@ -13,6 +13,8 @@ class State:
     Attributes:
         particle_q: [N] wp.vec3 positions, m.
         particle_qd: [N] wp.vec3 velocities, m/s.
+        particle_qdd: [N] wp.vec3 accelerations over the last substep, m/s² (the solver's
+            initial guess for the next one uses it; starts at gravity, i.e. free fall).
         surface_force: [S] wp.vec3 mean force each contact surface (ground, then plates)
             exerted on the bodies during the step that produced this state, N.
 
@@ -25,6 +27,8 @@ class State:
 
         self.particle_q = wp.clone(model.particle_q)
         self.particle_qd = wp.clone(model.particle_qd)
+        g = np.broadcast_to(np.asarray(model.gravity, np.float32), (model.particle_count, 3))
+        self.particle_qdd = wp.array(np.ascontiguousarray(g), dtype=wp.vec3, device=model.device)
         self.surface_force = wp.zeros(max(model.surface_count, 1), dtype=wp.vec3, device=model.device)
 
     def positions(self) -> np.ndarray:
@@ -39,4 +43,5 @@ class State:
         """Copy ``other``'s arrays into this state."""
         self.particle_q.assign(other.particle_q)
         self.particle_qd.assign(other.particle_qd)
+        self.particle_qdd.assign(other.particle_qdd)
         self.surface_force.assign(other.surface_force)
