@@ -6,6 +6,9 @@ be an inversion in float64):
 
 - :func:`tet_quality_kernel` (one thread per tet): the per-tet quality of
   :func:`tet_quality`, for whole meshes or for candidate tets of a flip.
+- :func:`point_mesh_distance_kernel` (one thread per point): exact distance from points
+  to a triangle surface through Warp's mesh BVH (float32), for the measured Hausdorff
+  distance between the surfaces before and after.
 - :func:`smooth_vertices_kernel` (one thread per vertex of one independent set): one step
   of optimisation-based smoothing (Freitag & Ollivier-Gooch 1997; Klingner & Shewchuk 2007,
   "Aggressive Tetrahedral Mesh Improvement", §3): ascend the soft minimum of the star's
@@ -20,10 +23,11 @@ be an inversion in float64):
 Quality measures (``mode``), all 1 for the regular tetrahedron, 0 for a degenerate one, and
 negative for an inverted one (so "quality > 0" implies positive orientation):
 
-- ``QUALITY_SINE`` (0): the smallest sine of the six dihedral angles divided by the
-  regular tet's, ``sin(theta_ij) = 6V l_ij / (|n_k| |n_l|)`` with ``n_k``, ``n_l`` the
-  doubled area vectors of the two faces meeting at edge ``ij`` (Klingner & Shewchuk's
-  "sine measure": it penalises both small and large dihedral angles);
+- ``QUALITY_SINE`` (0): the smallest of the six dihedral-angle sines, each signed like the
+  volume, divided by the regular tet's: ``sin(theta_ij) = 6V l_ij / (|n_k| |n_l|)`` with
+  ``n_k``, ``n_l`` the doubled area vectors of the two faces meeting at edge ``ij``
+  (Klingner & Shewchuk's "sine measure": it penalises both small and large dihedral
+  angles);
 - ``QUALITY_ETA`` (1): ``eta = 12 (3|V|)^(2/3) / sum l^2`` (the volume-length shape measure
   of Newton's ``validate_tet_mesh``), signed like the volume;
 - ``QUALITY_SINE_ETA`` (2): the smaller of the two.
@@ -50,6 +54,7 @@ __all__ = [
     "point_triangle_distance",
     "umbrella_move",
     "smooth_vertices_kernel",
+    "point_mesh_distance_kernel",
 ]
 
 QUALITY_SINE = wp.constant(0)
@@ -98,7 +103,7 @@ def tet_quality(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, d: wp.vec3d, mode: int) -
         sl2 = l01 * l01 + l02 * l02 + l03 * l03 + l12 * l12 + l13 * l13 + l23 * l23
         eta = wp.float64(0.0)
         if sl2 > wp.float64(0.0):
-            eta = wp.float64(12.0) * wp.pow(wp.abs(vol6) * wp.float64(0.5), wp.float64(2.0 / 3.0)) / sl2
+            eta = wp.float64(12.0) * wp.pow(wp.abs(vol6) * wp.float64(0.5), wp.float64(2.0) / wp.float64(3.0)) / sl2
             if vol6 < wp.float64(0.0):
                 eta = -eta
         q = wp.min(q, eta)
@@ -360,3 +365,22 @@ def smooth_vertices_kernel(
         x[v] = best_y
         q_after[k] = best
         moved_by[k] = best_h
+
+
+@wp.kernel
+def point_mesh_distance_kernel(
+    mesh: wp.uint64,  # wp.Mesh id of the target triangle surface (float32 BVH)
+    points: wp.array(dtype=wp.vec3),  # [P]
+    max_dist: float,  # search radius; points farther away report it and face -1
+    dist: wp.array(dtype=float),  # [P] out: distance to the closest surface point
+    face: wp.array(dtype=wp.int32),  # [P] out: the triangle holding it
+):
+    i = wp.tid()
+    p = points[i]
+    hit = wp.mesh_query_point_no_sign(mesh, p, max_dist)
+    if hit.result:
+        dist[i] = wp.length(wp.mesh_eval_position(mesh, hit.face, hit.u, hit.v) - p)
+        face[i] = hit.face
+    else:
+        dist[i] = max_dist
+        face[i] = -1

@@ -1,0 +1,1220 @@
+"""Element improvement after cleanup (method.md §7b): flips, smoothing, sliver removal.
+
+Cleanup (§7) hands over a valid mesh (one component, manifold boundary, no inverted tet)
+that is not yet simulation-ready: geometry optimisation leaves flattened caps at the
+boundary and distorted tets inside. This stage improves the elements in the manner of
+Klingner & Shewchuk, "Aggressive Tetrahedral Mesh Improvement" (IMR 2007), while keeping
+what §7b fixes: the same components, genus and manifold boundary, no inverted tet, and a
+boundary surface within ``max_surface_move`` mean boundary edges (Hausdorff) of the input.
+
+One *round* runs, in order:
+
+1. **boundary flips and cap deletion** (vectorised): a boundary edge whose open fan has
+   1..``max_boundary_ring`` tets is removed by retriangulating the fan (its two boundary
+   triangles flip to the other diagonal of their quad; a fan of one tet is a *cap*, simply
+   deleted), and a tet whose apex is a boundary vertex of valence one (three boundary
+   faces) is deleted with that vertex. These move the surface by the local two-sided
+   Hausdorff distance between the old and new triangles, which must fit the surface budget
+   left there (see below). A cap is deleted only once the tets it would expose are decent
+   (``boundary_threshold``): below it they can still be fixed from inside, above it only the
+   surface budget could help them. Changes are vertex-disjoint, and every batch is checked
+   (components, genus, shells, manifoldness) before it is kept. Boundary changes go first
+   in a round, before an interior flip can bury a cap under tets no surface operation reaches;
+2. **interior flips** (vectorised, repeated while they help): every interior face is a 2-3
+   flip candidate (the two tets on it become three around the edge joining their apexes),
+   every interior edge with 3..``max_ring`` tets an *edge removal* candidate (Shewchuk 2002,
+   "Two discrete optimization algorithms for the topological improvement of tetrahedral
+   meshes": the ring's tets are replaced by the best triangulation of the ring polygon
+   with every triangle coned to both edge ends; a ring of 3 is the 3-2 flip, of 4 the 4-4
+   flip). All triangulations of every ring are scored at once. A candidate counts only if
+   the worst new tet beats the worst old one by ``min_gain``; per pass, an independent set
+   (no shared tet) of the best is applied. Interior faces and edges are off the boundary,
+   so the boundary is untouched;
+3. **smoothing** (Warp, :func:`holowarp.kernels.improve.smooth_vertices_kernel`, one launch
+   per independent set of a vertex colouring): each vertex climbs the soft minimum of its
+   star's qualities and moves only if the star's worst quality rises. Interior vertices
+   move freely. Boundary vertices move only tangentially (in the null space of the
+   area-weighted normal covariance of their boundary triangles: a smooth vertex slides in
+   its tangent plane, a crease vertex along the crease, a corner not at all), and only to
+   positions whose surface move fits the budget;
+4. **sliver removal** where a round's flips and smoothing leave tets below
+   ``split_threshold``: such a tet gets a new vertex at the midpoint of its longest interior
+   edge (every tet around the edge splits in two), or at the centroid of its interior face
+   when all its edges are on the boundary (the two tets on the face become six). The new
+   vertex is interior, is placed by smoothing at once, and the split is kept only if the
+   worst child beats the worst tet it replaced.
+
+Surface budget. ``err`` (per vertex, metres) bounds how far every boundary triangle at the
+vertex has moved from the input surface. A change that replaces the surface patch P by P'
+(same rim) costs h = H(P, P'), the two-sided Hausdorff distance measured on sampled points
+(times ``hausdorff_margin``; for a vertex move never more than the vertex's displacement,
+which bounds it exactly); it is allowed where max(err over the patch's vertices) + h fits
+``max_surface_move`` mean boundary edges, and those vertices' err becomes that sum. By the
+triangle inequality the whole surface then stays within the bound of the input;
+``info["surface_hausdorff"]`` measures it.
+
+Quality: the "sine measure" of Klingner & Shewchuk (smallest dihedral-angle sine over the
+regular tet's) by default, see :mod:`holowarp.kernels.improve`. It is small for small and
+for nearly flat (~180°) dihedral angles alike: the slivers and caps that make an FEM solver
+substep or soften.
+
+Everything on tets is vectorised NumPy (sorting-based hashing of faces and edges) or Warp
+(qualities of whole meshes and of flip candidates, smoothing; ``device`` picks CPU or
+CUDA). No Python loop runs over tets, faces, edges or vertices.
+
+Example:
+    >>> from holowarp.primitives import box_tetmesh
+    >>> out, parent, info = improve(box_tetmesh((2, 2, 2)))
+    >>> info["after"]["min_dihedral_worst"] >= info["before"]["min_dihedral_worst"]
+    True
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from holowarp.tetmesh import TET_EDGES, TET_FACES, TetMesh
+
+__all__ = [
+    "ImproveConfig",
+    "QUALITY_MEASURES",
+    "ETA_HISTOGRAM_EDGES",
+    "improve",
+    "tet_quality",
+    "shape_quality_eta",
+    "surface_hausdorff",
+    "mean_boundary_edge",
+]
+
+#: Quality measures understood by :func:`tet_quality` (the codes of holowarp.kernels.improve).
+QUALITY_MEASURES = {"sine": 0, "eta": 1, "sine_eta": 2}
+
+#: Fixed bin edges of the report's eta histogram: 0.01 is Newton's validate_tet_mesh warning
+#: threshold, 1 the regular tet.
+ETA_HISTOGRAM_EDGES = (0.0, 0.01, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+
+_SIN_REGULAR = 2.0 * math.sqrt(2.0) / 3.0
+
+# (i, j, k, l) even permutations of (0, 1, 2, 3), one per local edge (i, j) of TET_EDGES:
+# for a positive tet, (t[i], t[j], t[k], t[l]) is positive too, so going round the directed
+# edge t[i] -> t[j] the ring steps from t[k] to t[l].
+_EDGE_PERM = np.array(
+    [[0, 1, 2, 3], [0, 2, 3, 1], [0, 3, 1, 2], [1, 2, 0, 3], [1, 3, 2, 0], [2, 3, 0, 1]], dtype=np.int64
+)
+# Faces meeting at each local edge (the faces opposite the two vertices off the edge).
+_EDGE_FACES = np.array([[2, 3], [1, 3], [1, 2], [0, 3], [0, 2], [0, 1]], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class ImproveConfig:
+    """Settings of the element-improvement stage (method.md §7b, issue 13).
+
+    Attributes:
+        max_surface_move: bound on the Hausdorff distance between the boundary surfaces
+            before and after, in mean boundary edge lengths of the input (method.md §7b:
+            0.1).
+        quality: the measure every operation maximises: ``"sine"`` (smallest dihedral
+            sine; Klingner & Shewchuk's best measure for dihedral angles), ``"eta"``
+            (volume-length) or ``"sine_eta"`` (the smaller of both).
+        min_gain: least rise of the local worst quality that counts as an improvement
+            (quality units, 1 = regular tet); keeps flips from cycling on round-off.
+        flip_threshold: only faces and edges with a tet below this quality are tried as
+            flips (0.75 covers every tet with a dihedral angle below about 45°).
+        max_ring: largest ring (tets around an interior edge) tried for edge removal;
+            Klingner & Shewchuk find rings above 7 almost never removable.
+        max_boundary_ring: largest open fan around a boundary edge tried for removal.
+        max_flip_passes: flip passes per round and kind (each applies one independent batch).
+        smooth_passes: smoothing sweeps (all colours) per round.
+        smooth_threshold: only vertices whose star has a tet below this quality are smoothed.
+        boundary_threshold: surface-moving operations (boundary flips, cap deletion,
+            boundary-vertex smoothing) are spent only on tets below this quality, so that
+            the surface budget goes to the worst elements; 0.35 is a dihedral angle of ~19°.
+        smooth_beta: soft-minimum sharpness of the smoothing objective (1/quality).
+        smooth_step: first trial step, in mean edge lengths of the vertex's star.
+        smooth_line_steps: trial steps per vertex and pass, each half the previous.
+        smooth_fd: finite-difference step of the smoothing gradient, in star edge lengths.
+        surface_samples: barycentric grid steps per triangle (``(n+1)(n+2)/2`` samples) at
+            which a boundary vertex's move is measured against the surface budget.
+        smooth_budget_share: boundary-vertex smoothing may use the surface budget only up to
+            this share of ``max_surface_move``; the rest stays for cap deletion and boundary
+            flips, which fix worse elements per unit of surface moved.
+        feature_ratio: a boundary vertex's normal-covariance eigenvalue above this fraction
+            of the largest spans a normal direction it may not move in. It is about
+            tan²(θ/2) for a crease turning the normal by θ, so 0.15 treats creases sharper
+            than ~42° as features (slide along them only) and corners as fixed.
+        split_threshold: tets still below this quality after a round's flips and smoothing
+            get a new vertex (sliver removal); 0.2 is a dihedral angle of about 11°.
+        max_splits_fraction: at most this fraction of the tets is split per round.
+        split_smooth_passes: smoothing steps that place each new vertex before its split
+            is judged.
+        max_rounds: cap on rounds; a round that raises neither the worst nor the mean
+            quality (and splits nothing) ends the stage.
+        mean_tol: a round must raise the mean quality by this much to count as progress.
+        eta_histogram_edges: bin edges of the eta histogram in the report.
+        hausdorff_samples_per_face: random surface samples per boundary triangle (plus all
+            vertices, edge midpoints and centroids) for the measured Hausdorff distance.
+        hausdorff_margin: factor on every sampled local surface move before it is charged
+            to the budget (a sampled maximum is slightly below the true one).
+    """
+
+    max_surface_move: float = 0.1
+    quality: str = "sine"
+    min_gain: float = 1e-3
+    flip_threshold: float = 0.75
+    max_ring: int = 7
+    max_boundary_ring: int = 5
+    max_flip_passes: int = 8
+    smooth_passes: int = 2
+    smooth_threshold: float = 0.75
+    boundary_threshold: float = 0.35
+    smooth_beta: float = 40.0
+    smooth_step: float = 0.25
+    smooth_line_steps: int = 6
+    smooth_fd: float = 1e-4
+    surface_samples: int = 4
+    smooth_budget_share: float = 1.0
+    feature_ratio: float = 0.15
+    split_threshold: float = 0.2
+    max_splits_fraction: float = 0.02
+    split_smooth_passes: int = 4
+    max_rounds: int = 12
+    mean_tol: float = 1e-3
+    eta_histogram_edges: tuple = field(default=ETA_HISTOGRAM_EDGES)
+    hausdorff_samples_per_face: int = 8
+    hausdorff_margin: float = 1.2
+
+    def __post_init__(self):
+        if self.quality not in QUALITY_MEASURES:
+            raise ValueError(f"quality must be one of {sorted(QUALITY_MEASURES)}, got {self.quality!r}")
+        if not (math.isfinite(self.max_surface_move) and self.max_surface_move >= 0):
+            raise ValueError(f"max_surface_move must be a finite number >= 0, got {self.max_surface_move}")
+        if not 3 <= self.max_ring <= 8:
+            raise ValueError(f"max_ring must lie in [3, 8], got {self.max_ring}")
+        if not 0 <= self.max_boundary_ring <= 7:
+            raise ValueError(f"max_boundary_ring must lie in [0, 7], got {self.max_boundary_ring}")
+        if self.surface_samples < 1:
+            raise ValueError(f"surface_samples must be >= 1, got {self.surface_samples}")
+        if not 0.0 <= self.smooth_budget_share <= 1.0:
+            raise ValueError(f"smooth_budget_share must lie in [0, 1], got {self.smooth_budget_share}")
+        if self.hausdorff_margin < 1.0:
+            raise ValueError(f"hausdorff_margin must be >= 1, got {self.hausdorff_margin}")
+        edges = tuple(float(e) for e in self.eta_histogram_edges)
+        if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
+            raise ValueError(f"eta_histogram_edges must increase strictly, got {self.eta_histogram_edges}")
+
+
+# ---------------------------------------------------------------------------- quality
+def _quality_of_points(P: np.ndarray, mode: int) -> np.ndarray:
+    """Quality (K,) of tets given by corner coordinates P (K, 4, 3), float64: the NumPy
+    reference of :func:`holowarp.kernels.improve.tet_quality`."""
+    a, b, c, d = P[:, 0], P[:, 1], P[:, 2], P[:, 3]
+    vol6 = np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a))
+    q = np.full(len(P), np.inf)
+    e = P[:, TET_EDGES[:, 1]] - P[:, TET_EDGES[:, 0]]  # [K, 6, 3]
+    l2 = np.einsum("kej,kej->ke", e, e)
+    if mode != 1:
+        f = P[:, TET_FACES]  # [K, 4, 3, 3]
+        n = np.linalg.norm(np.cross(f[:, :, 1] - f[:, :, 0], f[:, :, 2] - f[:, :, 0]), axis=2)  # [K, 4]
+        den = n[:, _EDGE_FACES[:, 0]] * n[:, _EDGE_FACES[:, 1]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.where(den > 0, vol6[:, None] * np.sqrt(l2) / den, 0.0)
+        q = s.min(axis=1) / _SIN_REGULAR
+    if mode != 0:
+        sl2 = l2.sum(axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            eta = np.where(sl2 > 0, 12.0 * (np.abs(vol6) * 0.5) ** (2.0 / 3.0) / sl2, 0.0)
+        q = np.minimum(q, np.sign(vol6) * eta)
+    return q
+
+
+def tet_quality(vertices, tets, measure: str = "sine") -> np.ndarray:
+    """Per-tet quality (M,) float64 by ``measure`` (``"sine"``, ``"eta"``, ``"sine_eta"``).
+
+    1 for the regular tetrahedron, 0 for a degenerate tet, negative for an inverted one.
+    ``"sine"``: smallest sine of the six dihedral angles over the regular tet's
+    (2 sqrt(2) / 3); ``"eta"``: :func:`shape_quality_eta`, signed like the volume.
+
+    Example:
+        >>> V = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+        >>> round(float(tet_quality(V, [[0, 1, 2, 3]])[0]), 12)
+        1.0
+    """
+    mode = QUALITY_MEASURES[measure]
+    V = np.asarray(vertices, dtype=np.float64)
+    T = np.asarray(tets, dtype=np.int64).reshape(-1, 4)
+    return _quality_of_points(V[T], mode)
+
+
+def shape_quality_eta(vertices, tets) -> np.ndarray:
+    """Newton's shape quality ``eta = 12 (3|V|)^(2/3) / sum(l^2)`` per tet (M,), >= 0
+    (1 for the regular tet; Newton's ``validate_tet_mesh`` warns below 0.01)."""
+    return np.abs(tet_quality(vertices, tets, "eta"))
+
+
+def _summary(V: np.ndarray, T: np.ndarray, q: np.ndarray) -> dict:
+    mq = TetMesh(V, T, validate=False).quality()
+    ar = mq["aspect_ratio"]
+    fin = np.isfinite(ar)
+    return {
+        "tets": int(len(T)),
+        "vertices": int(len(np.unique(T))),
+        "min_dihedral_worst": float(mq["min_dihedral_deg"].min()),
+        "min_dihedral_mean": float(mq["min_dihedral_deg"].mean()),
+        "aspect_ratio_mean": float(ar[fin].mean()) if fin.any() else float("inf"),
+        "aspect_ratio_worst": float(ar.max()),
+        "quality_min": float(q.min()),
+        "quality_mean": float(q.mean()),
+        "eta_min": float(shape_quality_eta(V, T).min()),
+        "inverted": int(np.count_nonzero(TetMesh(V, T, validate=False).signed_volumes() <= 0)),
+    }
+
+
+def _eta_histogram(V, T, edges) -> dict:
+    eta = shape_quality_eta(V, T)
+    e = np.asarray(edges, dtype=np.float64)
+    counts, _ = np.histogram(np.clip(eta, e[0], e[-1]), bins=e)
+    return {"bin_edges": [float(x) for x in e], "counts": counts.astype(int).tolist(),
+            "below_0.01": int(np.count_nonzero(eta < 0.01))}
+
+
+# ---------------------------------------------------------------------------- surface distance
+def mean_boundary_edge(mesh: TetMesh) -> float:
+    """Mean length (m) of the boundary surface's edges (0 for a mesh without boundary)."""
+    bf = mesh.boundary_faces().astype(np.int64)
+    if len(bf) == 0:
+        return 0.0
+    e = np.unique(np.sort(np.concatenate([bf[:, [0, 1]], bf[:, [1, 2]], bf[:, [2, 0]]]), axis=1), axis=0)
+    V = mesh.vertices
+    return float(np.linalg.norm(V[e[:, 0]] - V[e[:, 1]], axis=1).mean())
+
+
+def _closest_on_triangles(p, a, b, c):
+    """Distances (K,) from points p (K, 3) to triangles (a, b, c) (K, 3 each), exact
+    (Ericson, Real-Time Collision Detection §5.1.5, vectorised over the regions)."""
+    ab, ac = b - a, c - a
+    d1 = np.einsum("ij,ij->i", ab, p - a)
+    d2 = np.einsum("ij,ij->i", ac, p - a)
+    d3 = np.einsum("ij,ij->i", ab, p - b)
+    d4 = np.einsum("ij,ij->i", ac, p - b)
+    d5 = np.einsum("ij,ij->i", ab, p - c)
+    d6 = np.einsum("ij,ij->i", ac, p - c)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = va + vb + vc
+        q = a + ab * np.where(den != 0, vb / den, 0.0)[:, None] + ac * np.where(den != 0, vc / den, 0.0)[:, None]
+        # Edge regions, then vertex regions; later assignments win where several apply.
+        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+        q = np.where(m[:, None], a + ab * np.where(d1 != d3, d1 / (d1 - d3), 0.0)[:, None], q)
+        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+        q = np.where(m[:, None], a + ac * np.where(d2 != d6, d2 / (d2 - d6), 0.0)[:, None], q)
+        e43, e56 = d4 - d3, d5 - d6
+        m = (va <= 0) & (e43 >= 0) & (e56 >= 0)
+        q = np.where(m[:, None], b + (c - b) * np.where(e43 + e56 != 0, e43 / (e43 + e56), 0.0)[:, None], q)
+    q = np.where(((d1 <= 0) & (d2 <= 0))[:, None], a, q)
+    q = np.where(((d3 >= 0) & (d4 <= d3))[:, None], b, q)
+    q = np.where(((d6 >= 0) & (d5 <= d6))[:, None], c, q)
+    return np.linalg.norm(p - q, axis=1)
+
+
+def _point_surface_distance(points: np.ndarray, V: np.ndarray, F: np.ndarray, device: str = "cpu") -> np.ndarray:
+    """Distance (P,) from each point to the triangle surface (V, F): Warp's mesh BVH
+    (:func:`holowarp.kernels.improve.point_mesh_distance_kernel`, float32) finds the closest
+    triangle, and the distance to it is then taken exactly in float64."""
+    from holowarp.device import init_warp
+    from holowarp.kernels import improve as K
+
+    wp = init_warp()
+    c = V.mean(axis=0)
+    span = float(np.ptp(np.concatenate([V, points]), axis=0).max()) or 1.0
+    mesh = wp.Mesh(points=wp.array((V - c).astype(np.float32), dtype=wp.vec3, device=device),
+                   indices=wp.array(np.ascontiguousarray(F, dtype=np.int32).reshape(-1), dtype=wp.int32, device=device))
+    pts = wp.array((points - c).astype(np.float32), dtype=wp.vec3, device=device)
+    d32 = wp.empty(len(points), dtype=float, device=device)
+    face = wp.empty(len(points), dtype=wp.int32, device=device)
+    wp.launch(K.point_mesh_distance_kernel, dim=len(points), inputs=[mesh.id, pts, 4.0 * span],
+              outputs=[d32, face], device=device)
+    f = face.numpy().astype(np.int64)
+    hit = f >= 0
+    d = d32.numpy().astype(np.float64)
+    g = F[f[hit]]
+    d[hit] = _closest_on_triangles(points[hit], V[g[:, 0]], V[g[:, 1]], V[g[:, 2]])
+    return d
+
+
+def _surface_samples(V: np.ndarray, F: np.ndarray, per_face: int, rng) -> np.ndarray:
+    e = np.unique(np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1), axis=0)
+    pts = [V[np.unique(F)], 0.5 * (V[e[:, 0]] + V[e[:, 1]]), V[F].mean(axis=1)]
+    if per_face > 0:
+        r1 = np.sqrt(rng.random((len(F), per_face)))
+        r2 = rng.random((len(F), per_face))
+        w = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=2)  # [F, k, 3]
+        pts.append(np.einsum("fkj,fjd->fkd", w, V[F]).reshape(-1, 3))
+    return np.concatenate(pts)
+
+
+def surface_hausdorff(va, fa, vb, fb, *, samples_per_face: int = 8, seed: int = 0, device: str = "cpu") -> float:
+    """Hausdorff distance between two triangle surfaces, in their units.
+
+    Both one-sided distances are taken over every vertex, edge midpoint and face centroid
+    plus ``samples_per_face`` random points per triangle of the source surface, each
+    measured exactly to the other surface (point to triangle, not point to sample), so the
+    estimate approaches the true distance from below as the sampling densifies.
+    """
+    rng = np.random.default_rng(seed)
+    va, vb = np.asarray(va, np.float64), np.asarray(vb, np.float64)
+    fa, fb = np.asarray(fa, np.int64), np.asarray(fb, np.int64)
+    pa = _surface_samples(va, fa, samples_per_face, rng)
+    pb = _surface_samples(vb, fb, samples_per_face, rng)
+    return float(max(_point_surface_distance(pa, vb, fb, device).max(), _point_surface_distance(pb, va, fa, device).max()))
+
+
+def _barycentric_grid(level: int) -> np.ndarray:
+    """(K, 3) barycentric points of a triangle on a regular grid of ``level`` steps."""
+    i, j = np.meshgrid(np.arange(level + 1), np.arange(level + 1), indexing="ij")
+    m = i + j <= level
+    return np.stack([level - i[m] - j[m], i[m], j[m]], axis=1).astype(np.float64) / level
+
+
+_PATCH_GRID = _barycentric_grid(6)  # 28 points per triangle
+
+
+def _patch_hausdorff(Po: np.ndarray, Pn: np.ndarray, vo: np.ndarray, vn: np.ndarray, grid: np.ndarray = _PATCH_GRID) -> np.ndarray:
+    """Two-sided Hausdorff distance (C,) between small triangle patches sharing their rim,
+    given by corner coordinates ``Po`` (C, A, 3, 3) and ``Pn`` (C, B, 3, 3) with validity
+    masks ``vo`` (C, A), ``vn`` (C, B); each side sampled at the barycentric points ``grid``
+    (K, 3) of every triangle (28 by default) and measured exactly to the other side's
+    triangles. The NumPy reference of :func:`holowarp.kernels.improve.umbrella_move`."""
+
+    def one_way(src, vs, dst, vd):
+        C, A = src.shape[:2]
+        B = dst.shape[1]
+        P = np.einsum("kj,cajd->cakd", grid, src)  # [C, A, K, 3]
+        K = P.shape[2]
+        p = np.broadcast_to(P[:, :, :, None, :], (C, A, K, B, 3)).reshape(-1, 3)
+        tri = np.broadcast_to(dst[:, None, None], (C, A, K, B, 3, 3)).reshape(-1, 3, 3)
+        d = _closest_on_triangles(p, tri[:, 0], tri[:, 1], tri[:, 2]).reshape(C, A, K, B)
+        d = np.where(vd[:, None, None, :], d, np.inf).min(axis=3)  # [C, A, K]
+        return np.where(vs[:, :, None], d, 0.0).reshape(C, -1).max(axis=1)
+
+    if len(Po) == 0:
+        return np.zeros(0)
+    return np.maximum(one_way(Po, vo, Pn, vn), one_way(Pn, vn, Po, vo))
+
+
+def _local_hausdorff(V: np.ndarray, old_f: np.ndarray, new_f: np.ndarray) -> np.ndarray:
+    """:func:`_patch_hausdorff` of patches given as vertex ids (C, A, 3) / (C, B, 3) into
+    ``V``; rows starting with -1 are ignored."""
+    return _patch_hausdorff(V[np.maximum(old_f, 0)], V[np.maximum(new_f, 0)], old_f[:, :, 0] >= 0, new_f[:, :, 0] >= 0)
+
+
+# ---------------------------------------------------------------------------- combinatorics
+def _polygon_triangulations(n: int) -> np.ndarray:
+    """All triangulations of a convex polygon 0..n-1: (C_{n-2}, n-2, 3) int64 (Catalan
+    many), each triangle's corners in polygon order."""
+
+    def rec(poly):
+        if len(poly) < 3:
+            return [[]]
+        out = []
+        for i in range(1, len(poly) - 1):
+            for left in rec(poly[: i + 1]):
+                for right in rec(poly[i:]):
+                    out.append(left + right + [(poly[0], poly[i], poly[-1])])
+        return out
+
+    return np.array(rec(list(range(n))), dtype=np.int64).reshape(-1, max(n - 2, 0), 3)
+
+
+class _PolygonTables:
+    """For an n-gon: its distinct triangles ``combos`` (C, 3), every triangulation as rows
+    of combo ids ``tri`` (Tn, n-2), and per triangulation its inner diagonals ``diag``
+    (Tn, n-3, 2) in polygon positions."""
+
+    def __init__(self, n: int):
+        tri = _polygon_triangulations(n)
+        self.combos = np.unique(tri.reshape(-1, 3), axis=0)
+        cid = {tuple(c): i for i, c in enumerate(self.combos.tolist())}
+        self.tri = np.array([[cid[tuple(t)] for t in tr] for tr in tri.tolist()], dtype=np.int64).reshape(len(tri), n - 2)
+        diag = []
+        for tr in tri.tolist():
+            e = {tuple(sorted(p)) for t in tr for p in ((t[0], t[1]), (t[1], t[2]), (t[0], t[2]))}
+            diag.append(sorted(d for d in e if (d[1] - d[0]) % n not in (1, n - 1)))
+        self.diag = np.array(diag, dtype=np.int64).reshape(len(tri), max(n - 3, 0), 2)
+
+
+_POLYGONS = {n: _PolygonTables(n) for n in range(3, 10)}
+
+
+def _edge_keys(u, v, n):
+    lo, hi = np.minimum(u, v), np.maximum(u, v)
+    return lo.astype(np.int64) * n + hi
+
+
+class _EdgeTable:
+    """Every edge of the mesh with its ring of tets in cyclic order.
+
+    Attributes (E edges, R = longest ring kept):
+        u, v: (E,) endpoints, u < v; keys: (E,) sorted ``u * N + v``.
+        n: (E,) tets around the edge (R + 1 marks a broken ring: non-manifold input).
+        boundary: (E,) the fan is open (a boundary edge).
+        tets: (E, R) ring tets in order, -1 padded (only for n <= R).
+        verts: (E, R + 1) ring vertices in order: p_0..p_n for open fans, p_0..p_{n-1} for
+            closed rings (so that (u, v, p_i, p_{i+1}) is a positive tet), -1 padded.
+    """
+
+    def __init__(self, T: np.ndarray, N: int, R: int):
+        M = len(T)
+        P = T[:, _EDGE_PERM]  # [M, 6, 4]
+        u, v, a, b = (P[:, :, i].reshape(-1) for i in range(4))
+        tet = np.repeat(np.arange(M, dtype=np.int64), 6)
+        swap = u > v
+        u, v = np.where(swap, v, u), np.where(swap, u, v)
+        a, b = np.where(swap, b, a), np.where(swap, a, b)
+        key = u * N + v
+        order = np.argsort(key, kind="stable")
+        key, u, v, a, b, tet = key[order], u[order], v[order], a[order], b[order], tet[order]
+        start = np.r_[True, key[1:] != key[:-1]]
+        gid = np.cumsum(start) - 1
+        first = np.flatnonzero(start)
+        E = len(first)
+        n = np.diff(np.r_[first, len(key)])
+        # An entry whose 'from' vertex is no entry's 'to' vertex opens its (open) fan.
+        ka = gid * N + a
+        kb = np.sort(gid * N + b)
+        pos = np.minimum(np.searchsorted(kb, ka), len(kb) - 1)
+        opener = kb[pos] != ka
+        boundary = np.zeros(E, dtype=bool)
+        boundary[gid[opener]] = True
+        st = first.copy()
+        st[gid[opener]] = np.flatnonzero(opener)
+        ka_order = np.argsort(ka, kind="stable")
+        ka_sorted = ka[ka_order]
+        keep = np.flatnonzero(n <= R)
+        rt = np.full((E, R), -1, dtype=np.int64)
+        rv = np.full((E, R + 1), -1, dtype=np.int64)
+        cur = st[keep]
+        rt[keep, 0] = tet[cur]
+        rv[keep, 0] = a[cur]
+        rv[keep, 1] = b[cur]
+        # Walk every ring at once: the successor is the entry whose 'from' is our 'to'.
+        for step in range(1, R):
+            live = np.flatnonzero(n[keep] > step)
+            if len(live) == 0:
+                break
+            g, c = keep[live], cur[live]
+            want = gid[c] * N + b[c]
+            p = np.minimum(np.searchsorted(ka_sorted, want), len(ka_sorted) - 1)
+            ok = ka_sorted[p] == want
+            n[g[~ok]] = R + 1  # broken ring: kept out of every operation
+            nxt = ka_order[p[ok]]
+            rt[g[ok], step] = tet[nxt]
+            rv[g[ok], step + 1] = b[nxt]
+            cur[live[ok]] = nxt
+        closed = np.flatnonzero(~boundary & (n <= R))
+        rv[closed, n[closed]] = -1  # a closed ring came back to p_0
+        self.u, self.v, self.n, self.boundary = u[first], v[first], n, boundary
+        self.tets, self.verts, self.keys, self.N = rt, rv, key[first], N
+
+    def contains(self, a, b) -> np.ndarray:
+        """(K,) bool: the edge (a, b) exists."""
+        k = _edge_keys(np.asarray(a, np.int64), np.asarray(b, np.int64), self.N)
+        p = np.minimum(np.searchsorted(self.keys, k), len(self.keys) - 1)
+        return self.keys[p] == k
+
+
+def _select_independent(items: np.ndarray, priority: np.ndarray, n_items: int) -> np.ndarray:
+    """Greedy independent set: (C,) bool over candidates, no two sharing an item.
+
+    ``items`` (C, W) lists each candidate's items (-1 padded). A candidate is taken when it
+    has the best priority among all candidates touching each of its items, so the result
+    is independent and holds the best candidate.
+    """
+    C = len(items)
+    if C == 0:
+        return np.zeros(0, dtype=bool)
+    rank = np.empty(C, dtype=np.int64)
+    rank[np.argsort(-priority, kind="stable")] = np.arange(C)
+    valid = items >= 0
+    claim = np.full(n_items, C, dtype=np.int64)
+    r = np.broadcast_to(rank[:, None], items.shape)
+    np.minimum.at(claim, items[valid], r[valid])
+    return np.where(valid, claim[np.maximum(items, 0)] == r, True).all(axis=1)
+
+
+def _locate(V: np.ndarray, T: np.ndarray, old: np.ndarray, points: np.ndarray, old_parent: np.ndarray) -> np.ndarray:
+    """Parent of each point: the parent of the old tet (of the same candidate) in which the
+    point lies most deeply (largest smallest barycentric coordinate).
+
+    Args:
+        old: (C, A) ids into ``T`` (-1 padded); points: (C, B, 3); old_parent: per id of T.
+    Returns:
+        (C, B) int64.
+    """
+    oc = V[T[np.maximum(old, 0)]]  # [C, A, 4, 3]
+    D = np.stack([oc[:, :, 1] - oc[:, :, 0], oc[:, :, 2] - oc[:, :, 0], oc[:, :, 3] - oc[:, :, 0]], axis=-1)
+    lam = np.einsum("caij,cbaj->cbai", np.linalg.pinv(D), points[:, :, None, :] - oc[:, None, :, 0])
+    depth = np.minimum(1.0 - lam.sum(axis=-1), lam.min(axis=-1))  # [C, B, A]
+    depth = np.where((old >= 0)[:, None, :], depth, -np.inf)
+    return old_parent[np.take_along_axis(old, np.argmax(depth, axis=2), axis=1)]
+
+
+# ---------------------------------------------------------------------------- the work mesh
+class _Work:
+    """The mesh under improvement: positions, tets, parents, surface budget, counters.
+
+    Qualities are evaluated by :func:`holowarp.kernels.improve.tet_quality_kernel` on
+    ``device`` (whole meshes and flip candidates alike)."""
+
+    def __init__(self, mesh: TetMesh, cfg: ImproveConfig, device: str):
+        from holowarp.device import init_warp
+        from holowarp.kernels import improve as K
+
+        self.wp, self.K, self.device = init_warp(), K, device
+        self.V = np.array(mesh.vertices, dtype=np.float64)  # [N, 3]
+        self.T = np.array(mesh.tets, dtype=np.int64)  # [M, 4]
+        self.parent = np.arange(mesh.num_tets, dtype=np.int64)  # [M] input tet of each tet
+        # [N] bound, m, on how far every boundary triangle at the vertex has moved from the
+        # input surface (module docstring).
+        self.err = np.zeros(len(self.V))
+        # [M] tets changed since the last interior flip pass (only those can gain a flip).
+        self.dirty = np.ones(mesh.num_tets, dtype=bool)
+        self.mode = QUALITY_MEASURES[cfg.quality]
+        self.cfg = cfg
+        self.counts = {"2-3": 0, "3-2": 0, "4-4": 0, "edge_removal_5+": 0, "boundary_edge_removal": 0,
+                       "cap_removal": 0, "cap_vertex_removal": 0}
+        self.splits = {"edge": 0, "face": 0}
+        self._mesh = None
+        self._x = None
+        self._q = None
+
+    def mesh(self) -> TetMesh:
+        if self._mesh is None:
+            self._mesh = TetMesh(self.V.copy(), self.T, validate=False)
+        return self._mesh
+
+    def changed(self, positions: bool = True):
+        """Forget derived data after ``T`` (and, if ``positions``, ``V``) changed."""
+        self._mesh = None
+        self._q = None
+        if positions:
+            self._x = None
+
+    def quality_of(self, T: np.ndarray) -> np.ndarray:
+        """Quality (K,) of the tets T (K, 4) at the current positions."""
+        if len(T) == 0:
+            return np.zeros(0)
+        wp = self.wp
+        if self._x is None:
+            self._x = wp.array(self.V, dtype=wp.vec3d, device=self.device)
+        t = wp.array(np.ascontiguousarray(T, dtype=np.int32), dtype=wp.vec4i, device=self.device)
+        out = wp.empty(len(T), dtype=wp.float64, device=self.device)
+        wp.launch(self.K.tet_quality_kernel, dim=len(T), inputs=[self._x, t, self.mode], outputs=[out], device=self.device)
+        return out.numpy()
+
+    def quality(self) -> np.ndarray:
+        if self._q is None:
+            self._q = self.quality_of(self.T)
+        return self._q
+
+    def replace(self, drop: np.ndarray, new_tets: np.ndarray, new_parent: np.ndarray):
+        keep = np.ones(len(self.T), dtype=bool)
+        keep[drop] = False
+        new_tets = new_tets.reshape(-1, 4)
+        self.T = np.concatenate([self.T[keep], new_tets])
+        self.parent = np.concatenate([self.parent[keep], new_parent.reshape(-1)])
+        self.dirty = np.concatenate([self.dirty[keep], np.ones(len(new_tets), dtype=bool)])
+        self.changed(positions=False)
+
+
+def _retriangulate_rings(w: _Work, u, v, rv, m: int, edges: _EdgeTable):
+    """Best retriangulation of G rings of polygon size m around the edges (u, v).
+
+    The ring's tets are replaced by a triangulation of the polygon ``rv`` (G, m) (in ring
+    order), every triangle coned to u and to v; for an open fan the chord p_0 p_{m-1}
+    closes the polygon. Returns (quality of the worst new tet (G,), the new tets
+    (G, 2(m-2), 4), ok (G,): the triangulation's inner diagonals are not edges yet).
+    """
+    tab = _POLYGONS[m]
+    G = len(u)
+    c = tab.combos
+    pa, pb, pc = rv[:, c[:, 0]], rv[:, c[:, 1]], rv[:, c[:, 2]]  # [G, Cc]
+    uu = np.broadcast_to(u[:, None], pa.shape)
+    vv = np.broadcast_to(v[:, None], pa.shape)
+    up = np.stack([uu, pa, pb, pc], axis=-1).reshape(-1, 4)
+    dn = np.stack([vv, pa, pc, pb], axis=-1).reshape(-1, 4)
+    qc = np.minimum(w.quality_of(up), w.quality_of(dn)).reshape(pa.shape)  # [G, Cc]
+    qt = qc[:, tab.tri].min(axis=2)  # [G, Tn]
+    best = np.argmax(qt, axis=1)
+    qbest = qt[np.arange(G), best]
+    trs = c[tab.tri[best]]  # [G, m-2, 3] polygon positions
+    A, B, C = (np.take_along_axis(rv, trs[:, :, i], axis=1) for i in range(3))
+    uu, vv = np.broadcast_to(u[:, None], A.shape), np.broadcast_to(v[:, None], A.shape)
+    new = np.concatenate([np.stack([uu, A, B, C], -1), np.stack([vv, A, C, B], -1)], axis=1)
+    ok = np.ones(G, dtype=bool)
+    dg = tab.diag[best]  # [G, m-3, 2]
+    for j in range(dg.shape[1]):
+        a_ = np.take_along_axis(rv, dg[:, j, :1], axis=1)[:, 0]
+        b_ = np.take_along_axis(rv, dg[:, j, 1:], axis=1)[:, 0]
+        ok &= ~edges.contains(a_, b_)
+    return qbest, new, ok
+
+
+def _pad(arrs, fill=-1):
+    W = max(a.shape[1] for a in arrs)
+    return np.concatenate([np.pad(a, [(0, 0), (0, W - a.shape[1])] + [(0, 0)] * (a.ndim - 2), constant_values=fill) for a in arrs])
+
+
+def _interior_flip_pass(w: _Work) -> int:
+    """One batch of 2-3 flips and interior edge removals (3-2, 4-4, 5-6, ...) among the
+    faces and edges that touch a changed tet. Returns the number applied."""
+    cfg = w.cfg
+    T = w.T
+    N = len(w.V)
+    q = w.quality()
+    dirty = w.dirty
+    edges = _EdgeTable(T, N, cfg.max_ring)
+    c_old, c_new, c_gain, c_kind = [], [], [], []
+
+    # ---- 2-3 flips: interior faces (each once) with a bad tet on either side.
+    adj = w.mesh().face_adjacency().astype(np.int64)
+    e_ids, k_ids = np.nonzero(adj > np.arange(len(T))[:, None])
+    f_ids = adj[e_ids, k_ids]
+    qo = np.minimum(q[e_ids], q[f_ids])
+    sel = (qo < cfg.flip_threshold) & (dirty[e_ids] | dirty[f_ids])
+    e_ids, k_ids, f_ids, qo = e_ids[sel], k_ids[sel], f_ids[sel], qo[sel]
+    if len(e_ids):
+        d = T[e_ids, k_ids]
+        face = T[e_ids[:, None], TET_FACES[k_ids]]  # [C, 3] outward from e
+        o = T[f_ids].sum(axis=1) - face.sum(axis=1)  # the other apex
+        new = np.stack([np.stack([d, o, face[:, i], face[:, (i + 1) % 3]], axis=1) for i in range(3)], axis=1)
+        gain = w.quality_of(new.reshape(-1, 4)).reshape(-1, 3).min(axis=1) - qo
+        ok = (gain > cfg.min_gain) & ~edges.contains(d, o)
+        if ok.any():
+            c_old.append(np.stack([e_ids, f_ids], axis=1)[ok])
+            c_new.append(new[ok])
+            c_gain.append(gain[ok])
+            c_kind.append(np.full(int(ok.sum()), 2))
+
+    # ---- edge removal: interior edges with a ring of 3..max_ring tets.
+    for n in range(3, cfg.max_ring + 1):
+        g = np.flatnonzero(~edges.boundary & (edges.n == n))
+        if len(g) == 0:
+            continue
+        rt = edges.tets[g, :n]
+        qold = q[rt].min(axis=1)
+        s = (qold < cfg.flip_threshold) & dirty[rt].any(axis=1)
+        g, rt, qold = g[s], rt[s], qold[s]
+        if len(g) == 0:
+            continue
+        qbest, new, ok = _retriangulate_rings(w, edges.u[g], edges.v[g], edges.verts[g, :n], n, edges)
+        gain = qbest - qold
+        ok &= gain > cfg.min_gain
+        if ok.any():
+            c_old.append(rt[ok])
+            c_new.append(new[ok])
+            c_gain.append(gain[ok])
+            c_kind.append(np.full(int(ok.sum()), n))
+    w.dirty[:] = False
+    if not c_old:
+        return 0
+    old, new = _pad(c_old), _pad(c_new)
+    gain, kind = np.concatenate(c_gain), np.concatenate(c_kind)
+    take = _select_independent(old, gain, len(T))
+    old, new, kind = old[take], new[take], kind[take]
+    parents = _locate(w.V, T, old, w.V[np.maximum(new, 0)].mean(axis=2), w.parent)
+    valid = new[:, :, 0] >= 0
+    w.replace(old[old >= 0], new[valid], parents[valid])
+    for k, name in ((2, "2-3"), (3, "3-2"), (4, "4-4")):
+        w.counts[name] += int((kind == k).sum())
+    w.counts["edge_removal_5+"] += int((kind >= 5).sum())
+    return int(len(kind))
+
+
+def _topology_signature(mesh: TetMesh) -> tuple:
+    """What the stage must keep: components, genus, boundary shells, manifoldness."""
+    return (mesh.num_components(), mesh.genus(), mesh.boundary_shells(), bool(mesh.manifold()["manifold"]))
+
+
+def _boundary_edge_keys(mesh: TetMesh, N: int) -> np.ndarray:
+    bf = mesh.boundary_faces().astype(np.int64)
+    e = np.concatenate([bf[:, [0, 1]], bf[:, [1, 2]], bf[:, [2, 0]]])
+    return np.unique(_edge_keys(e[:, 0], e[:, 1], N))
+
+
+def _boundary_pass(w: _Work, signature: tuple, bound: float) -> int:
+    """One batch of boundary edge removals and cap deletions (module docstring, step 1).
+    Returns the number applied."""
+    cfg = w.cfg
+    T, V = w.T, w.V
+    N = len(V)
+    q = w.quality()
+    mesh = w.mesh()
+    K = cfg.max_boundary_ring
+    edges = _EdgeTable(T, N, K + 1)
+    bnd_keys = _boundary_edge_keys(mesh, N)
+    adj = mesh.face_adjacency().astype(np.int64)
+    bmask = mesh.boundary_mask()
+    capped = bmask.sum(axis=1) >= 2
+    err = w.err
+    c_old, c_new, c_verts, c_prio, c_h, c_kind = [], [], [], [], [], []
+    for k in range(1, K + 1):
+        g = np.flatnonzero(edges.boundary & (edges.n == k))
+        rt = edges.tets[g, :k]
+        qold = q[rt].min(axis=1) if len(g) else np.zeros(0)
+        s = qold < cfg.boundary_threshold
+        g, rt, qold = g[s], rt[s], qold[s]
+        if len(g) == 0:
+            continue
+        rv = edges.verts[g, : k + 1]
+        u, v, p0, pk = edges.u[g], edges.v[g], rv[:, 0], rv[:, k]
+        # The quad's two boundary triangles flip to its other diagonal.
+        h = cfg.hausdorff_margin * _local_hausdorff(
+            V, np.stack([np.stack([u, v, p0], 1), np.stack([u, v, pk], 1)], 1),
+            np.stack([np.stack([u, p0, pk], 1), np.stack([v, p0, pk], 1)], 1),
+        )
+        touched = np.concatenate([u[:, None], v[:, None], rv], axis=1)
+        ok = h + err[touched].max(axis=1) <= bound
+        if k == 1:
+            # The chord becomes a boundary edge: it must not be one already (a pinch).
+            ok &= ~np.isin(_edge_keys(p0, pk, N), bnd_keys)
+            # Deleting a cap exposes the tets under it to the surface, where only the
+            # surface budget could still improve them: wait until they are decent, unless
+            # a neighbour is a cap itself (two boundary faces) and no worse, which then
+            # gets deletable in turn.
+            under = adj[rt[:, 0]]
+            qu = q[np.maximum(under, 0)]
+            ok &= ((under < 0) | (qu >= cfg.boundary_threshold) | (capped[np.maximum(under, 0)] & (qu >= qold[:, None]))).all(axis=1)
+            new = np.zeros((len(g), 0, 4), dtype=np.int64)
+            prio = 1.0 - qold  # the worse the cap, the sooner
+        else:
+            ok &= ~edges.contains(p0, pk)
+            qnew, new, diag_ok = _retriangulate_rings(w, u, v, rv, k + 1, edges)
+            prio = qnew - qold
+            ok &= diag_ok & (prio > cfg.min_gain)
+        if ok.any():
+            c_old.append(rt[ok]), c_new.append(new[ok]), c_verts.append(touched[ok])
+            c_prio.append(prio[ok]), c_h.append(h[ok]), c_kind.append(np.full(int(ok.sum()), k))
+
+    # ---- tets whose apex has valence one (three boundary faces): delete tet and apex.
+    three = np.flatnonzero((bmask.sum(axis=1) == 3) & (q < cfg.boundary_threshold))
+    if len(three):
+        loc = np.argmin(bmask[three], axis=1)  # the apex is opposite the interior face
+        apex = T[three, loc]
+        valence = np.bincount(T.reshape(-1), minlength=N)
+        base = T[three[:, None], TET_FACES[loc]]
+        cone = np.stack([np.stack([apex, base[:, i], base[:, (i + 1) % 3]], 1) for i in range(3)], 1)
+        h = cfg.hausdorff_margin * _local_hausdorff(V, cone, base[:, None, :])
+        under = adj[three, loc]
+        ok = (valence[apex] == 1) & (h + err[T[three]].max(axis=1) <= bound)
+        qu = q[np.maximum(under, 0)]
+        ok &= (under >= 0) & ((qu >= cfg.boundary_threshold) | (capped[np.maximum(under, 0)] & (qu >= q[three])))
+        if ok.any():
+            c_old.append(three[ok, None]), c_new.append(np.zeros((int(ok.sum()), 0, 4), dtype=np.int64))
+            c_verts.append(T[three[ok]]), c_prio.append(1.0 - q[three[ok]]), c_h.append(h[ok])
+            c_kind.append(np.zeros(int(ok.sum()), dtype=np.int64))
+    if not c_old:
+        return 0
+    old, vts = _pad(c_old), _pad(c_verts)
+    new = _pad([x if x.shape[1] else np.full((len(x), 1, 4), -1, np.int64) for x in c_new])
+    prio, h, kind = np.concatenate(c_prio), np.concatenate(c_h), np.concatenate(c_kind)
+    # Vertex-disjoint: two boundary changes sharing a vertex are never judged apart.
+    take = _select_independent(vts, prio, N)
+    old, new, vts, h, kind = old[take], new[take], vts[take], h[take], kind[take]
+    applied = _apply_checked(w, signature, old, new, vts, np.arange(len(kind)), depth=6)
+    if len(applied) == 0:
+        return 0
+    vv = vts[applied]
+    e_new = np.where(vv >= 0, err[np.maximum(vv, 0)], 0.0).max(axis=1) + h[applied]
+    # Every new boundary triangle of a change lies within e_new of the input surface.
+    np.maximum.at(w.err, vv[vv >= 0], np.broadcast_to(e_new[:, None], vv.shape)[vv >= 0])
+    kk = kind[applied]
+    w.counts["cap_vertex_removal"] += int((kk == 0).sum())
+    w.counts["cap_removal"] += int((kk == 1).sum())
+    w.counts["boundary_edge_removal"] += int((kk >= 2).sum())
+    return int(len(applied))
+
+
+def _apply_checked(w: _Work, signature: tuple, old, new, vts, idx, depth: int) -> np.ndarray:
+    """Apply the boundary changes ``idx`` if the topology signature survives; otherwise drop
+    the ones at non-manifold vertices and retry, or try both halves. Returns those applied."""
+    if len(idx) == 0:
+        return idx
+    T, V = w.T, w.V
+    o, nw = old[idx], new[idx]
+    valid = nw[:, :, 0] >= 0
+    keep = np.ones(len(T), dtype=bool)
+    keep[o[o >= 0]] = False
+    T2 = np.concatenate([T[keep], nw[valid]])
+    trial, _ = TetMesh(V, T2, validate=False).remove_unused_vertices()
+    if _topology_signature(trial) == signature:
+        parents = _locate(V, T, o, V[np.maximum(nw, 0)].mean(axis=2), w.parent)
+        w.replace(o[o >= 0], nw[valid], parents[valid])
+        return idx
+    if depth <= 0 or len(idx) == 1:
+        return idx[:0]
+    used = np.unique(T2)  # trial's vertices are compacted: map the offenders back
+    bad = used[np.union1d(trial.non_manifold_edges().ravel(), trial.non_manifold_vertices())]
+    if len(bad):
+        hit = np.isin(vts[idx], bad).any(axis=1)
+        if hit.any() and not hit.all():
+            return _apply_checked(w, signature, old, new, vts, idx[~hit], depth - 1)
+    half = len(idx) // 2
+    a = _apply_checked(w, signature, old, new, vts, idx[:half], depth - 1)
+    b = _apply_checked(w, signature, old, new, vts, idx[half:], depth - 1)
+    return np.concatenate([a, b])
+
+
+# ---------------------------------------------------------------------------- smoothing
+def _vertex_stars(T: np.ndarray, N: int):
+    """CSR vertex -> incident tets: offsets (N+1,), tet ids (4M,), local index (4M,)."""
+    flat = T.reshape(-1)
+    order = np.argsort(flat, kind="stable")
+    offs = np.zeros(N + 1, dtype=np.int64)
+    np.cumsum(np.bincount(flat, minlength=N), out=offs[1:])
+    return offs, order // 4, order % 4
+
+
+def _gather_csr(offs: np.ndarray, ids: np.ndarray, rows: np.ndarray):
+    """Entries of CSR rows: (owner row index (K,), entry (K,)) for the given rows."""
+    cnt = offs[rows + 1] - offs[rows]
+    owner = np.repeat(np.arange(len(rows)), cnt)
+    pos = np.repeat(offs[rows], cnt) + np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    return owner, ids[pos]
+
+
+def _colour_classes(edges: np.ndarray, active: np.ndarray, rng) -> list[np.ndarray]:
+    """Partition the active vertices into independent sets of the edge graph
+    (Jones & Plassmann 1993: a vertex joins the current set when its random priority beats
+    every still-uncoloured active neighbour's)."""
+    N = len(active)
+    pri = rng.random(N)
+    left = active.copy()
+    a, b = edges[:, 0], edges[:, 1]
+    live = left[a] & left[b]
+    a, b = a[live], b[live]
+    out = []
+    while left.any():
+        best = np.full(N, -1.0)
+        np.maximum.at(best, a, pri[b])
+        np.maximum.at(best, b, pri[a])
+        pick = left & (pri > best)
+        out.append(np.flatnonzero(pick))
+        left &= ~pick
+        keep = left[a] & left[b]
+        a, b = a[keep], b[keep]
+    return out
+
+
+def _tangent_projectors(mesh: TetMesh, ratio: float) -> np.ndarray:
+    """(N, 3, 3) projector onto each vertex's allowed directions: identity inside, the
+    complement of the boundary normal space on the boundary (module docstring)."""
+    N = mesh.num_vertices
+    P = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
+    bf = mesh.boundary_faces().astype(np.int64)
+    if len(bf) == 0:
+        return P
+    V = mesh.vertices
+    n = np.cross(V[bf[:, 1]] - V[bf[:, 0]], V[bf[:, 2]] - V[bf[:, 0]])
+    area = np.linalg.norm(n, axis=1)
+    nu = n / np.maximum(area, 1e-300)[:, None]
+    outer = area[:, None, None] * nu[:, :, None] * nu[:, None, :]  # [F, 3, 3]
+    cov = np.zeros((N, 3, 3))
+    for j in range(3):
+        np.add.at(cov, bf[:, j], outer)
+    sv = np.unique(bf)
+    lam, vec = np.linalg.eigh(cov[sv])  # ascending
+    normal = (lam > ratio * lam[:, 2:3]).astype(np.float64)  # [S, 3]
+    P[sv] = np.eye(3) - np.einsum("sij,skj,sj->sik", vec, vec, normal)
+    return P
+
+
+def _smooth(w: _Work, proj: np.ndarray, bound: float, rng, passes: int, only=None) -> np.ndarray:
+    """Smooth ``passes`` times (module docstring, step 3); returns (N,) bool, the vertices
+    that moved.
+
+    A boundary vertex moves only to positions where its boundary triangles move (two-sided
+    Hausdorff, measured in the kernel) by no more than ``bound - w.err`` there; the move is
+    then charged to ``w.err`` of the triangles' vertices. ``only``: smooth just these
+    vertices, which must form one independent set (no two in a tet); by default every
+    vertex with a tet below ``smooth_threshold`` (``boundary_threshold`` for boundary
+    vertices) in its star, in the independent sets of a colouring."""
+    wp, K, cfg, dev = w.wp, w.K, w.cfg, w.device
+    T = w.T
+    N = len(w.V)
+    mesh = w.mesh()
+    bf = mesh.boundary_faces().astype(np.int64)
+    on_b = np.zeros(N, dtype=bool)
+    on_b[bf.reshape(-1)] = True
+    if only is None:
+        q = w.quality()
+        bad_i = np.zeros(N, dtype=bool)
+        bad_i[T[q < cfg.smooth_threshold].reshape(-1)] = True
+        bad_b = np.zeros(N, dtype=bool)
+        bad_b[T[q < cfg.boundary_threshold].reshape(-1)] = True
+        movable = np.where(on_b, bad_b, bad_i) & (np.abs(proj).sum(axis=(1, 2)) > 1e-12)
+    else:
+        movable = np.zeros(N, dtype=bool)
+        movable[only] = True
+    if not movable.any():
+        return movable
+    offs, st, sl = _vertex_stars(T, N)
+    f_offs = np.zeros(N + 1, dtype=np.int64)  # boundary triangles per vertex (CSR)
+    np.cumsum(np.bincount(bf.reshape(-1), minlength=N), out=f_offs[1:])
+    f_ids = np.argsort(bf.reshape(-1), kind="stable") // 3
+
+    def i32(a):
+        return wp.array(np.ascontiguousarray(a, dtype=np.int32), dtype=wp.int32, device=dev)
+
+    x = wp.array(w.V, dtype=wp.vec3d, device=dev)
+    tets = wp.array(T.astype(np.int32), dtype=wp.vec4i, device=dev)
+    offs_w, st_w, sl_w, fo_w, fi_w = i32(offs), i32(st), i32(sl), i32(f_offs), i32(f_ids)
+    bf_w = wp.array(bf.astype(np.int32) if len(bf) else np.zeros((1, 3), np.int32), dtype=wp.vec3i, device=dev)
+    proj_w = wp.array(proj, dtype=wp.mat33d, device=dev)
+    edges = mesh.edges().astype(np.int64) if only is None else None
+    moved = np.zeros(N, dtype=bool)
+    consts = [wp.float64(cfg.smooth_beta), wp.float64(cfg.smooth_step), int(cfg.smooth_line_steps),
+              wp.float64(cfg.smooth_fd), wp.float64(0.1 * cfg.min_gain), int(cfg.surface_samples),
+              wp.float64(cfg.hausdorff_margin)]
+    for _ in range(passes):
+        classes = [np.flatnonzero(movable)] if only is not None else _colour_classes(edges, movable, rng)
+        budget = wp.array(np.maximum(bound - w.err, 0.0), dtype=wp.float64, device=dev)
+        for cls in classes:
+            qb, qa, hm = (wp.zeros(len(cls), dtype=wp.float64, device=dev) for _ in range(3))
+            wp.launch(K.smooth_vertices_kernel, dim=len(cls),
+                      inputs=[x, tets, offs_w, st_w, sl_w, fo_w, fi_w, bf_w, i32(cls), proj_w, budget, w.mode, *consts],
+                      outputs=[qb, qa, hm], device=dev)
+            went = qa.numpy() > qb.numpy()
+            moved[cls[went]] = True
+            h = hm.numpy()
+            charged = went & (h > 0)
+            if charged.any():
+                _charge_umbrellas(w, cls[charged], h[charged], bf, f_offs, f_ids)
+                budget = wp.array(np.maximum(bound - w.err, 0.0), dtype=wp.float64, device=dev)
+    w.V = x.numpy().astype(np.float64).copy()
+    w.changed()
+    # Every tet of a moved vertex may now gain a flip.
+    w.dirty |= moved[T].any(axis=1)
+    return moved
+
+
+def _charge_umbrellas(w: _Work, verts, h, bf, f_offs, f_ids):
+    """Record that the boundary triangles around each of ``verts`` moved by ``h`` (m): they
+    now lie within (old bound at the vertex + h) of the input surface, and every vertex of
+    those triangles has to respect that bound from now on."""
+    w.err[verts] += h
+    owner, fid = _gather_csr(f_offs, f_ids, verts)
+    np.maximum.at(w.err, bf[fid].reshape(-1), np.repeat(w.err[verts][owner], 3))
+
+
+# ---------------------------------------------------------------------------- sliver removal
+def _split_pass(w: _Work, limit: int) -> int:
+    """Sliver removal by vertex insertion (module docstring, step 4) for at most ``limit``
+    tets below ``split_threshold``, worst first. Returns the splits kept."""
+    cfg = w.cfg
+    T, V = w.T, w.V
+    N, M = len(V), len(T)
+    q = w.quality()
+    bad = np.flatnonzero(q < cfg.split_threshold)
+    if len(bad) == 0 or limit <= 0:
+        return 0
+    bad = bad[np.argsort(q[bad])][:limit]
+    mesh = w.mesh()
+    eu, ev = T[bad][:, TET_EDGES[:, 0]], T[bad][:, TET_EDGES[:, 1]]
+    inner = ~np.isin(_edge_keys(eu, ev, N), _boundary_edge_keys(mesh, N))  # [B, 6]
+    has_inner = inner.any(axis=1)
+    simplices, rings, prio = [], [], []
+    eb = np.flatnonzero(has_inner)
+    if len(eb):
+        # Edge split at the longest interior edge: all tets of u's star that hold v.
+        ln = np.linalg.norm(V[eu[eb]] - V[ev[eb]], axis=2)
+        j = np.argmax(np.where(inner[eb], ln, -1.0), axis=1)
+        su, sv = eu[eb, j], ev[eb, j]
+        _, first = np.unique(_edge_keys(su, sv, N), return_index=True)
+        su, sv = su[first], sv[first]
+        offs, st, _ = _vertex_stars(T, N)
+        owner, flat = _gather_csr(offs, st, su)
+        hit = np.any(T[flat] == sv[owner][:, None], axis=1)
+        owner, flat = owner[hit], flat[hit]
+        n_ring = np.bincount(owner, minlength=len(su))
+        ring = np.full((len(su), max(int(n_ring.max()), 2)), -1, dtype=np.int64)
+        ring[owner, np.arange(len(owner)) - np.repeat(np.cumsum(n_ring) - n_ring, n_ring)] = flat
+        worst = np.full(len(su), np.inf)
+        np.minimum.at(worst, owner, q[flat])
+        simplices.append(np.stack([su, sv, np.full_like(su, -1)], axis=1))
+        rings.append(ring)
+        prio.append(-worst)
+    fb = bad[~has_inner]
+    if len(fb):
+        # Face split at the largest interior face of a tet whose edges are all boundary.
+        adj = mesh.face_adjacency().astype(np.int64)[fb]
+        P = V[T[fb][:, TET_FACES]]  # [F, 4, 3, 3]
+        area = np.linalg.norm(np.cross(P[:, :, 1] - P[:, :, 0], P[:, :, 2] - P[:, :, 0]), axis=2)
+        k = np.argmax(np.where(adj >= 0, area, -1.0), axis=1)
+        other = adj[np.arange(len(fb)), k]
+        okf = other >= 0
+        if okf.any():
+            fb, k, other = fb[okf], k[okf], other[okf]
+            simplices.append(T[fb[:, None], TET_FACES[k]])
+            rings.append(np.stack([fb, other], axis=1))
+            prio.append(-np.minimum(q[fb], q[other]))
+    if not simplices:
+        return 0
+    ring, simplex = _pad(rings), np.concatenate(simplices)
+    take = _select_independent(ring, np.concatenate(prio), M)
+    ring, simplex = ring[take], simplex[take]
+    S = len(simplex)
+    m_ids = N + np.arange(S)
+    on = simplex >= 0
+    mid = np.einsum("sk,skd->sd", on.astype(np.float64), V[np.maximum(simplex, 0)]) / on.sum(axis=1)[:, None]
+    # Each tet holding the simplex is copied once per simplex vertex, that vertex -> m.
+    rt = ring[ring >= 0]
+    owner = np.repeat(np.arange(S), (ring >= 0).sum(axis=1))
+    kids, kid_owner, kid_parent = [], [], []
+    for c in range(3):
+        vc = simplex[owner, c]
+        ok = vc >= 0
+        t = T[rt[ok]].copy()
+        t[t == vc[ok][:, None]] = m_ids[owner[ok]]
+        kids.append(t), kid_owner.append(owner[ok]), kid_parent.append(w.parent[rt[ok]])
+    kids, kid_owner, kid_parent = np.concatenate(kids), np.concatenate(kid_owner), np.concatenate(kid_parent)
+    ring_worst = np.full(S, np.inf)
+    np.minimum.at(ring_worst, owner, q[rt])
+    saved = (w.V, w.T, w.parent, w.err, w.dirty)
+    w.V = np.concatenate([V, mid])
+    w.err = np.concatenate([w.err, np.zeros(S)])  # new vertices are interior
+    w.replace(rt, kids, kid_parent)
+    w.changed()
+    Nn = len(w.V)
+    _smooth(w, np.broadcast_to(np.eye(3), (Nn, 3, 3)).copy(), 0.0, None, cfg.split_smooth_passes, only=m_ids)
+    kid_worst = np.full(S, np.inf)
+    np.minimum.at(kid_worst, kid_owner, w.quality_of(kids))
+    good = kid_worst > ring_worst + cfg.min_gain
+    if not good.all():
+        # Undo the splits that did not pay: their tets come back, their vertex stays unused.
+        Vn = w.V
+        w.V, w.T, w.parent, w.err, w.dirty = saved
+        if good.any():
+            w.V = np.concatenate([V, Vn[N:]])
+            w.err = np.concatenate([w.err, np.zeros(S)])
+            g = good[kid_owner]
+            w.replace(rt[good[owner]], kids[g], kid_parent[g])
+        w.changed()
+    w.splits["edge"] += int((good & ~on[:, 2]).sum())
+    w.splits["face"] += int((good & on[:, 2]).sum())
+    return int(good.sum())
+
+
+# ---------------------------------------------------------------------------- the stage
+def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: str = "cpu", progress=None):
+    """Improve the elements of a valid tet mesh (method.md §7b; module docstring).
+
+    Args:
+        mesh: positively oriented tet mesh (zero-volume tets are allowed, inverted ones
+            not), usually cleanup's output: one component, manifold boundary.
+        config: :class:`ImproveConfig`.
+        device: Warp device of the quality and smoothing kernels (``"cpu"``, ``"cuda[:N]"``).
+        progress: optional tqdm-like bar, updated once per round.
+
+    Returns:
+        ``(mesh, parent, info)``:
+
+        - the improved mesh (positively oriented, unused vertices removed);
+        - ``parent`` (K,) int64: for each output tet an input tet it derives from (the tet
+          it was split from, or, for a flip, the replaced tet that held its centroid);
+        - ``info``, the ``report.json -> improve`` section: ``flips`` (counts by type:
+          ``2-3``, ``3-2``, ``4-4``, ``edge_removal_5+``, ``boundary_edge_removal``,
+          ``cap_removal``, ``cap_vertex_removal``), ``splits`` (``edge``, ``face``),
+          ``vertices_smoothed``, ``before``/``after`` (tets, vertices, worst and mean
+          minimum dihedral in degrees, mean and worst aspect ratio, min and mean quality,
+          minimum eta, inverted), ``eta_histogram_before``/``_after`` (counts per bin of
+          ``bin_edges``, :data:`ETA_HISTOGRAM_EDGES` by default, and ``below_0.01``),
+          ``mean_boundary_edge`` (m), ``surface_hausdorff`` (m) and
+          ``surface_hausdorff_mean_edges`` (in input mean boundary edges),
+          ``surface_move_bound_mean_edges``, ``topology``, ``rounds``, ``seconds``.
+
+    Raises:
+        ValueError: an empty mesh or inverted tets.
+        holowarp.device.DeviceError: an unavailable device.
+    """
+    from holowarp.device import resolve_device
+
+    t0 = time.perf_counter()
+    cfg = config
+    device = resolve_device(device)
+    if mesh.num_tets == 0:
+        raise ValueError("improve: the mesh has no tetrahedra")
+    vol = mesh.signed_volumes()
+    if np.any(vol < 0):
+        raise ValueError(
+            f"improve: {int(np.count_nonzero(vol < 0))} of {mesh.num_tets} tets are inverted; "
+            "orient the mesh first (TetMesh.oriented) or run cleanup"
+        )
+    mesh, _ = mesh.remove_unused_vertices()
+    w = _Work(mesh, cfg, device)
+    signature = _topology_signature(mesh)
+    L = mean_boundary_edge(mesh)
+    bound = cfg.max_surface_move * L
+    rng = np.random.default_rng(0)
+    q0 = w.quality()
+    before = _summary(w.V, w.T, q0)
+    moved_any = np.zeros(len(w.V), dtype=bool)
+    best_worst, best_mean = float(q0.min()), float(q0.mean())
+    rounds = 0
+    for rounds in range(1, cfg.max_rounds + 1):
+        # Boundary changes first: an interior flip under a flattened cap would otherwise
+        # bury it under tets that no surface operation can reach.
+        if cfg.max_boundary_ring > 0 and bound > 0:
+            for _ in range(cfg.max_flip_passes):
+                if _boundary_pass(w, signature, bound) == 0:
+                    break
+        for _ in range(cfg.max_flip_passes):
+            if _interior_flip_pass(w) == 0:
+                break
+        moved = _smooth(w, _tangent_projectors(w.mesh(), cfg.feature_ratio), cfg.smooth_budget_share * bound, rng,
+                        cfg.smooth_passes)
+        moved_any = np.concatenate([moved_any, np.zeros(len(w.V) - len(moved_any), dtype=bool)])
+        moved_any[: len(moved)] |= moved
+        for _ in range(cfg.max_flip_passes):
+            if _interior_flip_pass(w) == 0:
+                break
+        q = w.quality()
+        worst, mean = float(q.min()), float(q.mean())
+        progressed = worst > best_worst + cfg.min_gain or mean > best_mean + cfg.mean_tol
+        best_worst, best_mean = max(best_worst, worst), max(best_mean, mean)
+        if progress is not None:
+            progress.update(1)
+            progress.set_postfix(worst=f"{worst:.3f}", mean=f"{mean:.3f}", tets=len(w.T), refresh=False)
+        if worst < cfg.split_threshold:
+            if _split_pass(w, max(1, int(cfg.max_splits_fraction * len(w.T)))) > 0:
+                continue
+        if not progressed:
+            break
+    out, _ = TetMesh(w.V, w.T, validate=False).remove_unused_vertices()
+    after = _summary(w.V, w.T, w.quality())
+    va, fa = mesh.surface_mesh()
+    vb, fb = out.surface_mesh()
+    hd = surface_hausdorff(va, fa, vb, fb, samples_per_face=cfg.hausdorff_samples_per_face, device=device)
+    info = {
+        "flips": dict(w.counts),
+        "splits": dict(w.splits),
+        "vertices_smoothed": int(moved_any.sum()),
+        "before": before,
+        "after": after,
+        "eta_histogram_before": _eta_histogram(mesh.vertices, mesh.tets, cfg.eta_histogram_edges),
+        "eta_histogram_after": _eta_histogram(out.vertices, out.tets, cfg.eta_histogram_edges),
+        "mean_boundary_edge": L,
+        "surface_hausdorff": hd,
+        "surface_hausdorff_mean_edges": hd / L if L > 0 else 0.0,
+        "surface_move_bound_mean_edges": cfg.max_surface_move,
+        "topology": {"components": signature[0], "genus": signature[1], "boundary_shells": signature[2],
+                     "manifold": signature[3]},
+        "rounds": rounds,
+        "quality_measure": cfg.quality,
+        "device": device,
+        "seconds": time.perf_counter() - t0,
+    }
+    return out, w.parent.copy(), info

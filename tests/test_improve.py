@@ -1,0 +1,471 @@
+"""Element improvement (method.md §7b): kernels against dense NumPy references, the stage's
+invariants on random and adversarial meshes, and the ``python -m holowarp.improve`` command."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from holowarp.bench.improve import plant_slivers
+from holowarp.mesh_io import read_tetmesh, write_tetmesh
+from holowarp.primitives import box_tetmesh
+from holowarp.stages import improve as I
+from holowarp.tetmesh import TET_EDGES, TET_FACES, TetMesh
+
+REGULAR = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float64)
+
+
+# ---------------------------------------------------------------------------- references
+def _ref_sine_quality(P: np.ndarray) -> np.ndarray:
+    """Smallest of the six dihedral-angle sines, each signed like the volume, over the
+    regular tet's; from the angles themselves (between the faces' in-plane directions
+    orthogonal to the edge), independent of the 6V l / (|n_k| |n_l|) identity the kernels use."""
+    out = np.empty(len(P))
+    for i, p in enumerate(P):
+        vol = np.dot(p[1] - p[0], np.cross(p[2] - p[0], p[3] - p[0]))
+        sines = []
+        for a, b in TET_EDGES:
+            c, d = [k for k in range(4) if k not in (a, b)]
+            e = p[b] - p[a]
+            e /= np.linalg.norm(e)
+            u = p[c] - p[a] - np.dot(p[c] - p[a], e) * e  # in-face directions orthogonal to the edge
+            w = p[d] - p[a] - np.dot(p[d] - p[a], e) * e
+            nu, nw = np.linalg.norm(u), np.linalg.norm(w)
+            ang = math.acos(np.clip(np.dot(u, w) / (nu * nw), -1, 1)) if nu > 0 and nw > 0 else 0.0
+            sines.append(math.sin(ang))
+        out[i] = min(np.sign(vol) * np.array(sines)) / (2 * math.sqrt(2) / 3)
+    return out
+
+
+def _ref_point_triangle(p, a, b, c) -> np.ndarray:
+    """Distance from points to triangles: to the plane where the projection falls inside,
+    else to the nearest of the three edge segments (no Voronoi-region logic)."""
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    s = np.einsum("ij,ij->i", p - a, n)
+    proj = p - s[:, None] * n
+    inside = np.ones(len(p), dtype=bool)
+    for x, y in ((a, b), (b, c), (c, a)):
+        inside &= np.einsum("ij,ij->i", np.cross(y - x, proj - x), n) >= 0
+    seg = []
+    for x, y in ((a, b), (b, c), (c, a)):
+        t = np.clip(np.einsum("ij,ij->i", p - x, y - x) / np.einsum("ij,ij->i", y - x, y - x), 0, 1)
+        seg.append(np.linalg.norm(p - (x + t[:, None] * (y - x)), axis=1))
+    return np.where(inside, np.abs(s), np.min(seg, axis=0))
+
+
+def _ref_hausdorff(ma: TetMesh, mb: TetMesh, rng, per_face: int = 40) -> float:
+    """Brute-force two-sided Hausdorff: dense samples of each boundary, every sample to every
+    triangle of the other with :func:`_ref_point_triangle`."""
+    def samples(V, F):
+        r1, r2 = np.sqrt(rng.random((len(F), per_face))), rng.random((len(F), per_face))
+        w = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=2)
+        e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+        return np.concatenate([V[np.unique(F)], 0.5 * (V[e[:, 0]] + V[e[:, 1]]),
+                               np.einsum("fkj,fjd->fkd", w, V[F]).reshape(-1, 3)])
+
+    def one_way(P, V, F):
+        d = np.full(len(P), np.inf)
+        A, B, C = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+        for f in range(len(F)):
+            d = np.minimum(d, _ref_point_triangle(P, *(np.broadcast_to(X[f], P.shape) for X in (A, B, C))))
+        return d.max()
+
+    va, fa = ma.surface_mesh()
+    vb, fb = mb.surface_mesh()
+    fa, fb = fa.astype(np.int64), fb.astype(np.int64)
+    return max(one_way(samples(va, fa), vb, fb), one_way(samples(vb, fb), va, fa))
+
+
+def _random_tets(rng, n: int) -> np.ndarray:
+    """(n, 4, 3) tets: random, nearly flat (slivers, caps), needles and inverted ones."""
+    P = rng.normal(size=(n, 4, 3))
+    k = n // 4
+    P[:k, 3] = P[:k, :3].mean(axis=1) + rng.normal(size=(k, 3)) * 1e-3  # flat: apex near the base
+    P[k : 2 * k, 1] = P[k : 2 * k, 0] + rng.normal(size=(k, 3)) * 1e-2  # needles: a short edge
+    return P
+
+
+# ---------------------------------------------------------------------------- kernel oracles
+def test_quality_kernel_matches_numpy_and_dihedral_references(rng):
+    P = _random_tets(rng, 400)
+    V = P.reshape(-1, 3)
+    T = np.arange(len(V)).reshape(-1, 4)
+    ref = _ref_sine_quality(P)
+    # arccos of nearly parallel directions keeps only ~8 digits: the angle route is the loose one.
+    np.testing.assert_allclose(I.tet_quality(V, T, "sine"), ref, rtol=1e-7, atol=1e-10)
+    w = I._Work(TetMesh(V, T), I.ImproveConfig(), "cpu")
+    eta = 12 * (3 * np.abs(np.linalg.det(P[:, 1:] - P[:, :1])) / 6) ** (2 / 3) / sum(
+        np.sum((P[:, j] - P[:, i]) ** 2, axis=1) for i, j in TET_EDGES)
+    eta *= np.sign(np.linalg.det(P[:, 1:] - P[:, :1]))
+    np.testing.assert_allclose(I.tet_quality(V, T, "eta"), eta, rtol=1e-9, atol=1e-14)  # det vs cross: flat tets cancel
+    for measure in ("sine", "eta", "sine_eta"):
+        w.mode = I.QUALITY_MEASURES[measure]  # the Warp kernel against the NumPy float64 reference
+        np.testing.assert_allclose(w.quality_of(T), I.tet_quality(V, T, measure), rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(I.tet_quality(V, T, "sine_eta"), np.minimum(I.tet_quality(V, T, "sine"), eta), rtol=1e-9)
+    assert I.tet_quality(REGULAR[[0, 2, 1, 3]], [[0, 1, 2, 3]])[0] == pytest.approx(1.0, abs=1e-12)
+    assert I.shape_quality_eta(REGULAR, [[0, 1, 2, 3]])[0] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_point_triangle_distances_match_the_plane_and_segment_reference(rng):
+    a, b, c = (rng.normal(size=(2000, 3)) for _ in range(3))
+    p = rng.normal(size=(2000, 3)) * 2
+    ref = _ref_point_triangle(p, a, b, c)
+    np.testing.assert_allclose(I._closest_on_triangles(p, a, b, c), ref, rtol=1e-9, atol=1e-12)
+    # Warp's BVH query (float32) on one random closed surface.
+    V, F = box_tetmesh((2, 2, 2)).surface_mesh()
+    V = V + rng.normal(size=V.shape) * 0.05
+    F = F.astype(np.int64)
+    q = rng.uniform(-0.5, 1.5, size=(500, 3))
+    dense = np.min([_ref_point_triangle(q, *(np.broadcast_to(V[F[f, i]], q.shape) for i in range(3))) for f in range(len(F))], axis=0)
+    np.testing.assert_allclose(I._point_surface_distance(q, V, F), dense, atol=2e-6)
+
+
+def _ref_smooth_step(V, T, bf, verts, proj, budget, cfg, mode):
+    """One step of optimisation-based smoothing for independent ``verts``, written out
+    densely in NumPy float64 (the kernel's documented algorithm); returns positions and the
+    surface move charged per vertex."""
+    V = V.copy()
+    charged = np.zeros(len(verts))
+    grid = I._barycentric_grid(cfg.surface_samples)
+    for i, v in enumerate(verts):
+        star, loc = np.nonzero(T == v)
+        x0 = V[v].copy()
+
+        def qs(y):
+            P = V[T[star]].copy()
+            P[np.arange(len(star)), loc] = y
+            return I._quality_of_points(P, mode)
+
+        h = np.linalg.norm(V[T[star]] - x0, axis=2).sum() / (3 * len(star))
+        q0 = qs(x0).min()
+
+        def soft(y):
+            q = qs(y)
+            m = q.min()
+            return m - np.log(np.exp(-cfg.smooth_beta * (q - m)).sum()) / cfg.smooth_beta
+
+        fd = cfg.smooth_fd * h
+        g = np.array([(soft(x0 + fd * e) - soft(x0 - fd * e)) / (2 * fd) for e in np.eye(3)])
+        d = proj[v] @ g
+        if np.linalg.norm(d) == 0:
+            continue
+        d /= np.linalg.norm(d)
+        faces = bf[np.any(bf == v, axis=1)]
+        best, best_y, best_h = q0, x0, 0.0
+        alpha = cfg.smooth_step * h
+        for _ in range(cfg.smooth_line_steps):
+            y = x0 + alpha * d
+            alpha *= 0.5
+            q = qs(y).min()
+            if q > best:
+                hm = 0.0
+                if len(faces):
+                    Po = V[faces][None]
+                    Pn = Po.copy()
+                    Pn[0][faces == v] = y
+                    ok = np.ones((1, len(faces)), dtype=bool)
+                    hm = min(cfg.hausdorff_margin * I._patch_hausdorff(Po, Pn, ok, ok, grid)[0], np.linalg.norm(y - x0))
+                if hm <= budget[v]:
+                    best, best_y, best_h = q, y, hm
+        if best > q0 + 0.1 * cfg.min_gain:
+            V[v] = best_y
+            charged[i] = best_h
+    return V, charged
+
+
+def test_smoothing_kernel_matches_dense_numpy_reference(rng):
+    mesh = plant_slivers(box_tetmesh((4, 4, 4)), 0.3, rng)
+    # Roughen the boundary too, so boundary vertices have curved umbrellas to measure.
+    V = mesh.vertices.copy()
+    bnd = np.unique(mesh.boundary_faces())
+    V[bnd] += rng.normal(size=(len(bnd), 3)) * 0.01
+    mesh = TetMesh(V, mesh.tets)
+    assert np.all(mesh.signed_volumes() > 0)
+    cfg = I.ImproveConfig()
+    w = I._Work(mesh, cfg, "cpu")
+    classes = I._colour_classes(mesh.edges().astype(np.int64), np.ones(mesh.num_vertices, dtype=bool), rng)
+    verts = max(classes, key=lambda c: min(np.isin(c, bnd).sum(), (~np.isin(c, bnd)).sum()))
+    assert np.isin(verts, bnd).any() and (~np.isin(verts, bnd)).any()
+    proj = I._tangent_projectors(mesh, cfg.feature_ratio)
+    bound = 0.004  # tight enough that some boundary steps are refused
+    bf = mesh.boundary_faces().astype(np.int64)
+    ref_V, ref_h = _ref_smooth_step(mesh.vertices, mesh.tets.astype(np.int64), bf, verts, proj,
+                                    np.full(mesh.num_vertices, bound), cfg, w.mode)
+    moved = I._smooth(w, proj, bound, None, 1, only=verts)
+    assert moved[verts].any() and (~moved[verts]).any()
+    np.testing.assert_allclose(w.V, ref_V, atol=1e-12)
+    # The charged surface moves are the kernel's, and stay within the budget.
+    np.testing.assert_allclose(w.err[verts], ref_h, atol=1e-12)
+    assert w.err.max() <= bound + 1e-15
+    # Boundary vertices moved tangentially only (up to the projector's null space).
+    dv = w.V - mesh.vertices
+    assert np.allclose(np.einsum("nij,nj->ni", proj, dv), dv, atol=1e-12)
+
+
+def test_edge_table_rings_are_cyclic_and_positive(rng):
+    mesh = plant_slivers(box_tetmesh((3, 2, 2)), 0.2, rng)
+    T = mesh.tets.astype(np.int64)
+    et = I._EdgeTable(T, mesh.num_vertices, 12)
+    uniq = mesh.edges()
+    np.testing.assert_array_equal(np.stack([et.u, et.v], 1), uniq)
+    counts = np.bincount(np.searchsorted(et.keys, I._edge_keys(T[:, TET_EDGES[:, 0]], T[:, TET_EDGES[:, 1]], mesh.num_vertices)).ravel())
+    np.testing.assert_array_equal(et.n, counts)
+    bkeys = I._boundary_edge_keys(mesh, mesh.num_vertices)
+    np.testing.assert_array_equal(et.boundary, np.isin(et.keys, bkeys))
+    V = mesh.vertices
+    for e in range(len(et.u)):
+        n = et.n[e]
+        ring = et.verts[e, : n + 1] if et.boundary[e] else np.r_[et.verts[e, :n], et.verts[e, 0]]
+        for i in range(n):  # (u, v, p_i, p_i+1) is the ring tet, positively oriented
+            t = [et.u[e], et.v[e], ring[i], ring[i + 1]]
+            assert sorted(t) == sorted(T[et.tets[e, i]].tolist())
+            assert np.linalg.det(V[t[1:]] - V[t[0]]) > 0
+
+
+def test_every_polygon_triangulation_is_enumerated():
+    for n, catalan in ((3, 1), (4, 2), (5, 5), (6, 14), (7, 42), (8, 132)):
+        tab = I._POLYGONS[n]
+        assert tab.tri.shape == (catalan, n - 2)
+        tris = {tuple(sorted(map(tuple, tab.combos[r].tolist()))) for r in tab.tri}
+        assert len(tris) == catalan  # all distinct
+        # Each triangulation covers the polygon's area exactly (regular polygon).
+        ang = 2 * np.pi * np.arange(n) / n
+        P = np.stack([np.cos(ang), np.sin(ang)], 1)
+        area = 0.5 * n * np.sin(2 * np.pi / n)
+        for r in tab.tri:
+            t = P[tab.combos[r]]
+            e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+            a = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+            assert np.all(a > 0) and a.sum() == pytest.approx(area)
+
+
+# ---------------------------------------------------------------------------- adversarial meshes
+def _rough_box(rng, cells=(4, 4, 4), amp=0.2):
+    """A box whose vertices (boundary ones too) are jittered: a random, rough-surfaced mesh."""
+    m = box_tetmesh(cells)
+    h = 1.0 / max(cells)
+    V0 = m.vertices
+    V = V0 + rng.uniform(-amp, amp, V0.shape) * h
+    while True:
+        bad = TetMesh(V.copy(), m.tets, validate=False).signed_volumes() <= 1e-3 * h**3
+        if not bad.any():
+            return TetMesh(V, m.tets)
+        back = np.unique(m.tets[bad])
+        V[back] = V0[back]
+
+
+def _capped_box(rng):
+    """A jittered box with two flat caps glued onto one top cell: a vertex a hair above the
+    middle of the cell's diagonal, coned to both of its triangles. Each cap has two boundary
+    faces; deleting one turns the other into a cap with three."""
+    m = plant_slivers(box_tetmesh((3, 3, 2)), 0.02, rng)
+    V, T = m.vertices, m.tets.astype(np.int64)
+    bf = m.boundary_faces().astype(np.int64)
+    top = bf[np.all(np.isclose(V[bf][:, :, 2], 1.0), axis=1)]
+    # Two top triangles sharing an edge (the diagonal of a cell).
+    e0 = {tuple(sorted(p)) for p in ((top[0, 0], top[0, 1]), (top[0, 1], top[0, 2]), (top[0, 2], top[0, 0]))}
+    j = next(i for i in range(1, len(top)) if len(e0 & {tuple(sorted(p)) for p in
+             ((top[i, 0], top[i, 1]), (top[i, 1], top[i, 2]), (top[i, 2], top[i, 0]))}) == 1)
+    a, c = sorted(e0 & {tuple(sorted(p)) for p in ((top[j, 0], top[j, 1]), (top[j, 1], top[j, 2]), (top[j, 2], top[j, 0]))})[0]
+    b = int(np.setdiff1d(top[0], [a, c])[0])
+    d = int(np.setdiff1d(top[j], [a, c])[0])
+    e = len(V)
+    L = np.linalg.norm(V[a] - V[c])
+    apex = 0.5 * (V[a] + V[c]) + [0, 0, 0.01 * L]
+    caps = np.array([[a, b, c, e], [a, c, d, e]])
+    mesh, _ = TetMesh(np.vstack([V, apex]), np.vstack([T, caps])).oriented()
+    return mesh
+
+
+def _split_edge_near_end(mesh: TetMesh, boundary: bool, t: float = 0.02) -> TetMesh:
+    """Split one edge (a boundary edge or an interior one) at ``t`` of its length: the tets
+    around it become needles (a very short edge) and slivers."""
+    T = mesh.tets.astype(np.int64)
+    bk = I._boundary_edge_keys(mesh, mesh.num_vertices)
+    E = mesh.edges().astype(np.int64)
+    on_b = np.isin(I._edge_keys(E[:, 0], E[:, 1], mesh.num_vertices), bk)
+    ln = np.linalg.norm(mesh.vertices[E[:, 0]] - mesh.vertices[E[:, 1]], axis=1)
+    cand = np.flatnonzero(on_b == boundary)
+    u, v = E[cand[np.argmax(ln[cand])]]
+    m = mesh.num_vertices
+    x = mesh.vertices[u] + t * (mesh.vertices[v] - mesh.vertices[u])
+    ring = np.flatnonzero(np.isin(T, [u, v]).sum(axis=1) == 2)
+    A, B = T[ring].copy(), T[ring].copy()
+    A[A == v] = m
+    B[B == u] = m
+    keep = np.setdiff1d(np.arange(len(T)), ring)
+    return TetMesh(np.vstack([mesh.vertices, x]), np.vstack([T[keep], A, B]))
+
+
+def _genus_one(rng):
+    mask = np.ones((5, 5, 3), dtype=bool)
+    mask[2, 2, :] = False
+    return plant_slivers(box_tetmesh((5, 5, 3), cell_mask=mask), 0.1, rng)
+
+
+CASES = {
+    "planted_slivers": lambda rng: plant_slivers(box_tetmesh((5, 5, 5)), 0.05, rng),
+    "rough_random": lambda rng: _rough_box(rng),
+    "boundary_cap": _capped_box,
+    "boundary_needle": lambda rng: _split_edge_near_end(plant_slivers(box_tetmesh((3, 3, 3)), 0.0, rng), True),
+    "interior_needle": lambda rng: _split_edge_near_end(plant_slivers(box_tetmesh((3, 3, 3)), 0.0, rng), False),
+    "genus_one": _genus_one,
+}
+
+
+@pytest.fixture(scope="module")
+def improved():
+    """Every adversarial case, improved once with the default settings."""
+    out = {}
+    for i, (name, make) in enumerate(CASES.items()):
+        rng = np.random.default_rng(1000 + i)
+        mesh = make(rng)
+        out[name] = (mesh, *I.improve(mesh))
+    return out
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_improvement_keeps_topology_orientation_and_surface(improved, name):
+    mesh, out, parent, info = improved[name]
+    assert np.all(mesh.signed_volumes() > 0)
+    m0, m1 = mesh.manifold(), out.manifold()
+    assert m0["manifold"] and m1["manifold"]
+    assert out.num_components() == mesh.num_components() == 1
+    assert out.genus() == mesh.genus()
+    assert out.boundary_shells() == mesh.boundary_shells()
+    assert np.all(out.signed_volumes() > 0), "an inverted or flat tet was produced"
+    assert info["after"]["inverted"] == 0
+    # The surface stays within 0.1 mean boundary edge (brute-force Hausdorff).
+    L = I.mean_boundary_edge(mesh)
+    hd = _ref_hausdorff(mesh, out, np.random.default_rng(7))
+    assert hd <= 0.1 * L
+    # The report's sampled value is a lower estimate too (float32 BVH: round-off of ~1e-7).
+    assert info["surface_hausdorff"] <= hd + 1e-6 * L
+    assert info["surface_hausdorff_mean_edges"] <= 0.1
+    # Quality never gets worse, and the volume changes only where caps were cut.
+    assert info["after"]["quality_min"] >= info["before"]["quality_min"]
+    assert info["after"]["min_dihedral_worst"] >= info["before"]["min_dihedral_worst"]
+    v0, f0 = mesh.surface_mesh()
+    area = 0.5 * np.linalg.norm(np.cross(v0[f0[:, 1]] - v0[f0[:, 0]], v0[f0[:, 2]] - v0[f0[:, 0]]), axis=1).sum()
+    assert abs(out.volume() - mesh.volume()) <= 0.1 * L * area
+    # Parents are input tets, and most output tets overlap theirs.
+    assert parent.shape == (out.num_tets,) and parent.min() >= 0 and parent.max() < mesh.num_tets
+    cen = out.vertices[out.tets].mean(axis=1)
+    P = mesh.vertices[mesh.tets[parent]]
+    lam = np.linalg.solve(np.transpose(P[:, 1:] - P[:, :1], (0, 2, 1)), (cen - P[:, 0])[..., None])[..., 0]
+    inside = np.minimum(1 - lam.sum(axis=1), lam.min(axis=1)) > -0.5
+    assert inside.mean() > 0.9
+
+
+@pytest.mark.parametrize("name,worst", [("planted_slivers", 10.0), ("genus_one", 10.0), ("boundary_cap", 10.0),
+                                        ("boundary_needle", 10.0), ("interior_needle", 10.0), ("rough_random", 5.0)])
+def test_improvement_removes_slivers_caps_and_needles(improved, name, worst):
+    mesh, out, _, info = improved[name]
+    assert info["before"]["min_dihedral_worst"] < 3.0 or name == "rough_random"
+    assert info["after"]["min_dihedral_worst"] >= worst
+    assert info["after"]["eta_min"] >= 0.01
+    assert info["after"]["aspect_ratio_mean"] <= info["before"]["aspect_ratio_mean"]
+
+
+def test_cap_is_deleted_and_report_counts_every_operation(improved):
+    mesh, out, _, info = improved["boundary_cap"]
+    assert info["flips"]["cap_removal"] + info["flips"]["cap_vertex_removal"] >= 1
+    assert out.num_vertices < mesh.num_vertices  # the caps' apex is gone
+    for key in ("2-3", "3-2", "4-4", "edge_removal_5+", "boundary_edge_removal", "cap_removal", "cap_vertex_removal"):
+        assert isinstance(info["flips"][key], int)
+    h = info["eta_histogram_after"]
+    assert h["bin_edges"] == list(I.ETA_HISTOGRAM_EDGES)
+    assert sum(h["counts"]) == out.num_tets and h["below_0.01"] == 0
+    json.dumps(info)  # report.json-ready
+
+
+def test_zero_surface_budget_keeps_the_boundary_exactly(rng):
+    mesh = _rough_box(rng, cells=(3, 3, 3))
+    out, _, info = I.improve(mesh, I.ImproveConfig(max_surface_move=0.0))
+    v0, f0 = mesh.surface_mesh()
+    v1, f1 = out.surface_mesh()
+    key = lambda V, F: sorted(tuple(sorted(map(tuple, np.round(V[f], 12).tolist()))) for f in F)  # noqa: E731
+    assert key(v0, f0) == key(v1, f1)
+    assert info["surface_hausdorff"] <= 1e-12 * I.mean_boundary_edge(mesh)
+    assert info["after"]["quality_min"] >= info["before"]["quality_min"]
+
+
+def test_improve_refuses_inverted_tets_and_empty_meshes():
+    with pytest.raises(ValueError, match="inverted"):
+        I.improve(TetMesh(REGULAR, [[0, 1, 2, 3]]))
+    with pytest.raises(ValueError, match="no tetrahedra"):
+        I.improve(TetMesh(REGULAR, np.zeros((0, 4), int)))
+    with pytest.raises(ValueError, match="max_surface_move"):
+        I.ImproveConfig(max_surface_move=-1.0)
+
+
+# ---------------------------------------------------------------------------- command line
+def _run(capsys, *argv):
+    from holowarp.improve import main
+
+    rc = main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+def test_cli_improves_a_tetgen_wound_mesh_and_writes_the_report(tmp_path, capsys, rng):
+    mesh = plant_slivers(box_tetmesh((3, 3, 3)), 0.2, rng)
+    neg = TetMesh(mesh.vertices, mesh.tets[:, [0, 2, 1, 3]])  # every tet negative (TetGen winding)
+    src, dst, rep = tmp_path / "in.msh", tmp_path / "out.vtu", tmp_path / "r.json"
+    write_tetmesh(src, neg)
+    rc, out, err = _run(capsys, src, dst, "--json", rep, "--quiet")
+    assert rc == 0, err
+    assert out.count("\n") == 1 and out.startswith(f"wrote {dst}") and "re-oriented all" in out
+    res = read_tetmesh(dst)
+    assert np.all(res.signed_volumes() > 0) and res.manifold()["manifold"]
+    r = json.loads(rep.read_text())
+    assert r["input"]["reoriented"] == mesh.num_tets
+    assert r["after"]["min_dihedral_worst"] > r["before"]["min_dihedral_worst"]
+    assert r["surface_move_bound_mean_edges"] == 0.1
+
+
+def test_cli_takes_an_explicit_zero_bound(tmp_path, capsys, rng):
+    mesh = _rough_box(rng, cells=(3, 3, 2))
+    src, dst, rep = tmp_path / "in.npz", tmp_path / "out.npz", tmp_path / "r.json"
+    write_tetmesh(src, mesh)
+    rc, out, err = _run(capsys, src, dst, "--max-surface-move", "0", "--json", rep, "--quiet")
+    assert rc == 0, err
+    r = json.loads(rep.read_text())
+    assert r["surface_move_bound_mean_edges"] == 0.0 and r["surface_hausdorff_mean_edges"] <= 1e-12
+
+
+@pytest.mark.parametrize("args,names", [
+    (["{src}", "{tmp}/out.vtu", "--max-surface-move", "-0.5"], "--max-surface-move"),
+    (["{src}", "{tmp}/out.vtu", "--max-surface-move", "nan"], "--max-surface-move"),
+    (["{src}", "{tmp}/out.stl"], "out.stl"),
+    (["{src}", "{tmp}"], "OUT"),
+    (["{tmp}/missing.vtu", "{tmp}/out.vtu"], "missing.vtu"),
+    (["{mixed}", "{tmp}/out.vtu"], "mixed.npz"),
+    (["{src}", "{tmp}/out.vtu", "--json", "{tmp}/r.txt"], "--json"),
+    (["{src}", "{tmp}/out.vtu", "--device", "tpu"], "--device"),
+])
+def test_cli_errors_are_one_line_naming_the_culprit_before_any_work(tmp_path, capsys, rng, args, names):
+    mesh = box_tetmesh((2, 2, 2))
+    src, mixed = tmp_path / "in.npz", tmp_path / "mixed.npz"
+    write_tetmesh(src, mesh)
+    t = mesh.tets.copy()
+    t[0] = t[0, [0, 2, 1, 3]]
+    write_tetmesh(mixed, TetMesh(mesh.vertices, t))
+    argv = [a.format(src=src, tmp=tmp_path, mixed=mixed) for a in args]
+    rc, out, err = _run(capsys, *argv)
+    assert rc == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and names in lines[0], err
+    assert not (tmp_path / "out.vtu").exists()
+
+
+def test_cli_help_states_formats_and_the_bound(capsys):
+    from holowarp.improve import build_parser
+
+    text = build_parser().format_help()
+    for word in (".vtu", ".msh", ".npz", ".usda", "FRAC", ">= 0", "0.1", "--device", "--quiet", "--json"):
+        assert word in text
