@@ -9,7 +9,9 @@ here, never in timed tests.
 - ``mesh``: the triangle rasteriser and tet energies.
 - ``sim``: the simulator against Newton ``SolverVBD``.
 - ``eval``: metrics on a 100k-point pair and ground-truth rendering of 120 views.
+- ``quality``: reconstruction quality against the visual hull on the concavity suite.
 - ``improve``: the element-improvement stage on a 200k-tet mesh with planted slivers.
+- ``load``: loading a 49-view 1600x1200 NeuS/IDR capture at 128 px (target: under 10 s).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import time
 
 __all__ = ["BENCHMARKS", "median_ms", "peak_rss_mb"]
 
-BENCHMARKS = ("tetmesh", "raster", "mesh", "sim", "eval", "improve")
+BENCHMARKS = ("tetmesh", "raster", "mesh", "sim", "eval", "improve", "quality", "load")
 
 
 def median_ms(fn, *, repeat: int = 5, warmup: int = 1) -> float:

@@ -12,24 +12,97 @@ import numpy as np
 
 from holowarp.data.dataset import DatasetError
 
-__all__ = ["IMAGE_EXTS", "read_image", "find_image", "rigid_c2w", "check_mask", "number", "frame_number", "list_images"]
+__all__ = ["IMAGE_EXTS", "image_size", "read_image", "read_mask", "find_image", "rigid_c2w", "check_mask", "number",
+           "frame_number", "list_images", "default_workers", "read_views"]
 
 #: Image file extensions the loaders read (case-insensitive).
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
 
-def read_image(path: Path) -> np.ndarray:
-    """(H, W[, C]) float32 in [0, 1]; 16-bit images are scaled by 65535."""
+_SIXTEEN_BIT = ("I;16", "I;16B", "I;16L", "I")
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """``(H, W)`` of an image file, from its header (nothing is decoded)."""
     from PIL import Image
 
     try:
         with Image.open(path) as im:
+            return int(im.size[1]), int(im.size[0])
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read image ({e})") from None
+
+
+def _bands_to_array(bands, shape, scale: float) -> np.ndarray:
+    """Stack PIL bands into (H', W'[, C]) float32 / ``scale``, each band area-resized to
+    ``shape`` in PIL's float mode first when ``shape`` is given (BOX is linear, so scaling
+    after the resize equals resizing the scaled values)."""
+    from PIL import Image
+
+    if shape is not None:
+        bands = [b.convert("F").resize((shape[1], shape[0]), Image.BOX) for b in bands]
+    arrs = [np.asarray(b, dtype=np.float32) for b in bands]
+    a = arrs[0].copy() if len(arrs) == 1 else np.stack(arrs, axis=-1)
+    return np.divide(a, scale, out=a)
+
+
+def _open_checked(path: Path, expect):
+    """The opened PIL image; DatasetError naming ``path`` when its size is not ``expect``'s
+    (``expect = (other file, (H, W))``; checked from the header, before decoding)."""
+    from PIL import Image
+
+    im = Image.open(path)
+    if expect is not None and (im.size[1], im.size[0]) != tuple(expect[1]):
+        w, h = im.size
+        im.close()
+        raise DatasetError(f"{path}: size {w}x{h} differs from {expect[0]} ({expect[1][1]}x{expect[1][0]})")
+    return im
+
+
+def read_image(path: Path, *, shape: tuple[int, int] | None = None, expect=None) -> np.ndarray:
+    """(H, W[, C]) float32 in [0, 1]; 16-bit images are scaled by 65535.
+
+    Args:
+        shape: area-resize to (H', W') while decoding, band by band (never holding a
+            full-resolution float copy); ``None`` keeps the file's size.
+        expect: ``(other file, (H, W))``: the size the file must have (checked before
+            decoding; the error names both files).
+    """
+    try:
+        with _open_checked(path, expect) as im:
+            if shape is not None and (im.size[1], im.size[0]) == tuple(shape):
+                shape = None
             im.load()
-            if im.mode in ("I;16", "I;16B", "I;16L", "I"):
-                return np.asarray(im, dtype=np.float32) / 65535.0
+            if im.mode in _SIXTEEN_BIT:
+                return _bands_to_array([im.convert("I").convert("F")], shape, 65535.0)
             if im.mode not in ("L", "LA", "RGB", "RGBA"):
                 im = im.convert("RGBA" if "A" in im.getbands() else "RGB")
-            return np.asarray(im, dtype=np.float32) / 255.0
+            if shape is None:
+                a = np.asarray(im).astype(np.float32)  # one float copy, divided in place
+                return np.divide(a, 255.0, out=a)
+            return _bands_to_array(im.split(), shape, 255.0)
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read image ({e})") from None
+
+
+def read_mask(path: Path, *, shape: tuple[int, int] | None = None, expect=None) -> np.ndarray:
+    """(H, W) float32 coverage in [0, 1] of a mask image: grey as is, grey + alpha its grey
+    band, RGB(A) the brightest of R, G, B (masks saved as colour images); 16-bit scaled by
+    65535. ``shape`` and ``expect`` as in :func:`read_image`."""
+    from PIL import ImageChops
+
+    try:
+        with _open_checked(path, expect) as im:
+            if shape is not None and (im.size[1], im.size[0]) == tuple(shape):
+                shape = None
+            im.load()
+            if im.mode in _SIXTEEN_BIT:
+                return _bands_to_array([im.convert("I").convert("F")], shape, 65535.0)
+            if im.mode not in ("L", "LA", "RGB", "RGBA"):
+                im = im.convert("RGBA" if "A" in im.getbands() else "RGB")
+            bands = im.split()
+            band = bands[0] if len(bands) < 3 else ImageChops.lighter(ImageChops.lighter(bands[0], bands[1]), bands[2])
+            return _bands_to_array([band], shape, 255.0)
     except OSError as e:
         raise DatasetError(f"{path}: cannot read image ({e})") from None
 
@@ -110,3 +183,57 @@ def frame_number(path: Path) -> int | None:
 def list_images(folder: Path) -> list[Path]:
     """The image files of ``folder`` (hidden files skipped), sorted by name."""
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and not p.name.startswith("."))
+
+
+def default_workers() -> int:
+    """Decoding threads: one per CPU core, at most 8 (PNG/JPEG decoding and PIL's resize
+    release the GIL; beyond 8 the disk, not the CPU, is usually the limit)."""
+    return max(1, min(8, os.cpu_count() or 1))
+
+
+def read_views(n: int, read_one, *, full_shape: tuple[int, int], size: int | None = None,
+               workers: int | None = None) -> dict:
+    """Decode ``n`` views in a thread pool, each resized as it is decoded, into one stack per
+    array (full-resolution views are never all held at once).
+
+    Args:
+        n: number of views (>= 1).
+        read_one: ``read_one(i, shape) -> arrays``: view ``i`` at ``shape`` (H', W'), a dict
+            with ``"image"`` (H', W', 3) and ``"mask"`` (H', W') float32, optionally
+            ``"normal"`` (H', W', 3) and ``"depth"`` (H', W') (the same keys for every view).
+            It checks that its files have ``full_shape`` (:func:`read_image`'s ``expect``).
+        full_shape: (H, W) of the files (view 0's, from :func:`image_size`).
+        size: longer side of the output in pixels (``None``: keep the full resolution).
+        workers: decoding threads (default :func:`default_workers`).
+
+    Returns:
+        dict of stacked float32 arrays ``image`` (n, H', W', 3), ``mask`` (n, H', W'), and
+        ``normal`` / ``depth`` when the views have them, plus ``full_shape`` (H, W) and
+        ``shape`` (H', W'); rescale intrinsics with
+        :func:`holowarp.data.dataset.scale_intrinsics`. The first failing view, in index
+        order, raises its error.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from holowarp.data.dataset import resized_shape
+
+    full = tuple(int(x) for x in full_shape)
+    shape = full if size is None else resized_shape(full[0], full[1], size)
+    out: dict = {}
+
+    def put(i: int) -> None:
+        arrays = read_one(i, shape)
+        for k, a in arrays.items():
+            if k not in out:  # first view to finish allocates (keys and shapes are common)
+                out.setdefault(k, np.empty((n,) + np.shape(a), np.float32))
+            out[k][i] = a
+
+    pool = ThreadPoolExecutor(max_workers=max(1, min(n, workers or default_workers())))
+    try:
+        futures = [pool.submit(put, i) for i in range(n)]
+        for f in futures:
+            f.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    out["full_shape"], out["shape"] = full, shape
+    return out

@@ -13,7 +13,7 @@ import numpy as np
 
 from holowarp.errors import InputError
 
-__all__ = ["Dataset", "DatasetError"]
+__all__ = ["Dataset", "DatasetError", "resized_shape", "scale_intrinsics", "area_resize", "resize_view"]
 
 
 class DatasetError(InputError):
@@ -86,56 +86,29 @@ class Dataset:
         return self.images * a + bg * (1.0 - a)
 
     def resized(self, size: int) -> "Dataset":
-        """A copy with the longer image side resized to ``size`` pixels (area filter).
-
-        ``K`` is rescaled so the cameras still see the same rays.
-        """
-        from PIL import Image
-
+        """A copy with the longer image side resized to ``size`` pixels (area filter, see
+        :func:`resize_view`); ``K`` is rescaled (:func:`scale_intrinsics`) so the cameras still
+        see the same rays. Loaders resize each view as it is decoded instead."""
         h, w = self.height, self.width
-        s = size / max(h, w)
-        if abs(s - 1.0) < 1e-9:
+        nh, nw = resized_shape(h, w, size)
+        if (nh, nw) == (h, w):
             return self
-        nh, nw = max(1, round(h * s)), max(1, round(w * s))
-
-        def rs(stack, channels):
-            out = np.empty((len(stack), nh, nw) + ((channels,) if channels else ()), np.float32)
-            for i, im in enumerate(stack):
-                if channels:
-                    for c in range(channels):
-                        out[i, ..., c] = np.asarray(
-                            Image.fromarray(im[..., c].astype(np.float32), mode="F").resize(
-                                (nw, nh), Image.BOX
-                            )
-                        )
-                else:
-                    out[i] = np.asarray(
-                        Image.fromarray(im.astype(np.float32), mode="F").resize((nw, nh), Image.BOX)
-                    )
-            return out
-
-        K = self.K.copy()
-        K[:, 0, :] *= nw / w
-        K[:, 1, :] *= nh / h
-        normals = None
-        if self.normals is not None:
-            normals = rs(self.normals, 3)
-            nrm = np.linalg.norm(normals, axis=-1, keepdims=True)
-            normals = np.where(nrm > 1e-6, normals / np.maximum(nrm, 1e-6), 0.0).astype(np.float32)
-        depths = None
-        if self.depths is not None:
-            # Area-average depth over covered pixels only, so edges don't blend with 0.
-            m = rs(self.masks, 0)
-            dm = rs(self.depths * self.masks, 0)
-            depths = np.where(m > 1e-6, dm / np.maximum(m, 1e-6), 0.0).astype(np.float32)
-        return replace(
-            self,
-            images=np.clip(rs(self.images, 3), 0, 1),
-            masks=np.clip(rs(self.masks, 0), 0, 1),
-            K=K,
-            normals=normals,
-            depths=depths,
-        )
+        n = self.num_views
+        images = np.empty((n, nh, nw, 3), np.float32)
+        masks = np.empty((n, nh, nw), np.float32)
+        normals = None if self.normals is None else np.empty((n, nh, nw, 3), np.float32)
+        depths = None if self.depths is None else np.empty((n, nh, nw), np.float32)
+        for i in range(n):
+            v = resize_view((nh, nw), self.images[i], self.masks[i],
+                            normal=None if normals is None else self.normals[i],
+                            depth=None if depths is None else self.depths[i])
+            images[i], masks[i] = v["image"], v["mask"]
+            if normals is not None:
+                normals[i] = v["normal"]
+            if depths is not None:
+                depths[i] = v["depth"]
+        return replace(self, images=images, masks=masks, K=scale_intrinsics(self.K, (h, w), (nh, nw)),
+                       normals=normals, depths=depths)
 
     def subset(self, idx) -> "Dataset":
         """A dataset holding only views ``idx``; train/test membership is kept."""
@@ -154,3 +127,73 @@ class Dataset:
             train_idx=np.array(tr, np.int64),
             test_idx=np.array(te, np.int64),
         )
+
+
+def resized_shape(height: int, width: int, size: int) -> tuple[int, int]:
+    """``(new_height, new_width)`` with the longer side ``size`` pixels and the aspect ratio
+    kept (each side rounded, at least 1)."""
+    if int(size) < 1:
+        raise DatasetError(f"--res must be >= 1 pixel, got {size}")
+    s = int(size) / max(height, width)
+    if abs(s - 1.0) < 1e-9:
+        return int(height), int(width)
+    return max(1, round(height * s)), max(1, round(width * s))
+
+
+def scale_intrinsics(K: np.ndarray, shape: tuple[int, int], new_shape: tuple[int, int]) -> np.ndarray:
+    """``K`` (..., 3, 3) for images resized from ``shape`` (H, W) to ``new_shape``.
+
+    Pixel edges map to pixel edges (the image spans [0, W] x [0, H] with pixel centres at
+    x + 0.5), so row 0 of K (fx, skew, cx) scales by new_W / W and row 1 (fy, cy) by
+    new_H / H: the rays through corresponding image points are unchanged, skew included.
+    """
+    K = np.array(K, dtype=np.float64, copy=True)
+    K[..., 0, :] *= new_shape[1] / shape[1]
+    K[..., 1, :] *= new_shape[0] / shape[0]
+    return K
+
+
+def area_resize(a: np.ndarray, new_shape: tuple[int, int]) -> np.ndarray:
+    """Area-filtered (box) resize of a (H, W) or (H, W, C) float array to ``new_shape``
+    (H', W'), channel by channel in float32 (PIL's BOX filter: each output pixel averages the
+    input area it covers, with fractional weights at its edges)."""
+    from PIL import Image
+
+    nh, nw = new_shape
+    a = np.asarray(a, dtype=np.float32)
+    if a.shape[:2] == (nh, nw):
+        return a.copy()
+    if a.ndim == 2:
+        return np.asarray(Image.fromarray(a, mode="F").resize((nw, nh), Image.BOX))
+    out = np.empty((nh, nw, a.shape[2]), np.float32)
+    for c in range(a.shape[2]):
+        out[..., c] = np.asarray(Image.fromarray(np.ascontiguousarray(a[..., c]), mode="F").resize((nw, nh), Image.BOX))
+    return out
+
+
+def resize_view(new_shape: tuple[int, int], image: np.ndarray, mask: np.ndarray, *, normal=None, depth=None) -> dict:
+    """One view's arrays area-resized to ``new_shape`` (H', W').
+
+    Args:
+        image: (H, W, 3) float RGB in [0, 1].
+        mask: (H, W) float coverage in [0, 1].
+        normal: optional (H, W, 3) world unit normals; averaged, then renormalised (zero
+            where the average vanishes).
+        depth: optional (H, W) camera z-depth; averaged over covered pixels only (weighted
+            by the mask), so silhouette pixels do not blend with the background's 0.
+
+    Returns:
+        dict ``image`` (H', W', 3), ``mask`` (H', W') clipped to [0, 1], and ``normal`` /
+        ``depth`` when given, all float32.
+    """
+    out = {"image": np.clip(area_resize(image, new_shape), 0.0, 1.0),
+           "mask": np.clip(area_resize(mask, new_shape), 0.0, 1.0)}
+    if normal is not None:
+        n = area_resize(normal, new_shape)
+        ln = np.linalg.norm(n, axis=-1, keepdims=True)
+        out["normal"] = np.where(ln > 1e-6, n / np.maximum(ln, 1e-6), 0.0).astype(np.float32)
+    if depth is not None:
+        m = area_resize(mask, new_shape)
+        dm = area_resize(np.asarray(depth, np.float32) * mask, new_shape)
+        out["depth"] = np.where(m > 1e-6, dm / np.maximum(m, 1e-6), 0.0).astype(np.float32)
+    return out

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from holowarp.camera import opengl_c2w_to_viewmat, viewmat_to_opengl_c2w
-from holowarp.data.common import check_mask, find_image, number, read_image, rigid_c2w
-from holowarp.data.dataset import Dataset, DatasetError
+from holowarp.data.common import check_mask, find_image, image_size, number, read_image, read_views, rigid_c2w
+from holowarp.data.dataset import Dataset, DatasetError, resize_view, scale_intrinsics
 
 __all__ = ["load_nerf_synthetic", "write_nerf_synthetic"]
 
@@ -128,47 +128,51 @@ def _depth_map(root: Path, fr: dict, geom, doc: dict, shape, where: str, jp: Pat
     return dm
 
 
-class _Arrays:
-    """The per-view arrays, allocated at the first image's size."""
+def _frame_reader(root: Path, entries, want_n: bool, want_d: bool):
+    """``(read_one(i, shape) -> arrays, full = (first image, (H, W)))`` for
+    :func:`holowarp.data.common.read_views`; every image file is looked up first, so a
+    missing one fails before any decoding."""
+    paths = [find_image(root, fr["file_path"], f"{jp} frame {k}") for _, k, fr, _, jp in entries]
+    full = (paths[0], image_size(paths[0]))
 
-    def __init__(self, n: int, h: int, w: int, want_n: bool, want_d: bool, first: Path):
-        self.shape, self.first = (h, w), first
-        self.images = np.empty((n, h, w, 3), np.float32)
-        self.masks = np.empty((n, h, w), np.float32)
-        self.normals = np.zeros((n, h, w, 3), np.float32) if want_n else None
-        self.depths = np.zeros((n, h, w), np.float32) if want_d else None
-        self.K = np.zeros((n, 3, 3))
-        self.viewmats = np.zeros((n, 4, 4))
-
-
-def _read_frames(root: Path, entries, load_normals: bool, load_depths: bool) -> tuple[_Arrays, list, list]:
-    n = len(entries)
-    want_n = load_normals and all(("geometry_path" in e[2]) or ("normal_path" in e[2]) for e in entries)
-    want_d = load_depths and all(("geometry_path" in e[2]) or ("depth_path" in e[2]) for e in entries)
-    arr, train, test = None, [], []
-    for i, (split, k, fr, doc, jp) in enumerate(entries):
-        where = f"{jp} frame {k}"
-        ip = find_image(root, fr["file_path"], where)
-        im = read_image(ip)
+    def read_one(i: int, shape):
+        _, k, fr, doc, jp = entries[i]
+        where, ip = f"{jp} frame {k}", paths[i]
+        # Normals and depths are resized with the full-resolution mask (resize_view), so
+        # only views without them are resized while decoding.
+        geometry = want_n or want_d
+        im = read_image(ip, shape=None if geometry else shape, expect=full)
         if im.ndim != 3 or im.shape[2] != 4:
             raise DatasetError(f"{ip}: image has no alpha channel; NeRF-synthetic images are RGBA with alpha as the mask")
-        if arr is None:
-            arr = _Arrays(n, im.shape[0], im.shape[1], want_n, want_d, ip)
-        elif im.shape[:2] != arr.shape:
-            raise DatasetError(f"{ip}: size {im.shape[1]}x{im.shape[0]} differs from {arr.first} "
-                               f"({arr.shape[1]}x{arr.shape[0]})")
-        arr.images[i], arr.masks[i] = im[..., :3], im[..., 3]
-        check_mask(arr.masks[i], str(ip))
-        arr.K[i] = _intrinsics(doc, im.shape[1], im.shape[0], jp)
-        arr.viewmats[i] = opengl_c2w_to_viewmat(rigid_c2w(fr["transform_matrix"], where))
-        (train if split == "train" else test).append(i)
-        if want_n or want_d:
-            geom = _geometry_file(root, fr, where)
-            if want_n:
-                arr.normals[i] = _normal_map(root, fr, geom, arr.masks[i], where)
-            if want_d:
-                arr.depths[i] = _depth_map(root, fr, geom, doc, arr.shape, where, jp)
-    return arr, train, test
+        out = {"image": np.ascontiguousarray(im[..., :3]), "mask": np.ascontiguousarray(im[..., 3])}
+        check_mask(out["mask"], str(ip))
+        if not geometry:
+            return out
+        geom = _geometry_file(root, fr, where)
+        if want_n:
+            out["normal"] = _normal_map(root, fr, geom, out["mask"], where)
+        if want_d:
+            out["depth"] = _depth_map(root, fr, geom, doc, im.shape[:2], where, jp)
+        if tuple(shape) != im.shape[:2]:
+            out = resize_view(shape, out["image"], out["mask"], normal=out.get("normal"), depth=out.get("depth"))
+        return out
+
+    return read_one, full
+
+
+def _read_frames(root: Path, entries, load_normals: bool, load_depths: bool, res, workers):
+    """(views of :func:`read_views`, K (N, 3, 3), viewmats (N, 4, 4), train, test)."""
+    want_n = load_normals and all(("geometry_path" in e[2]) or ("normal_path" in e[2]) for e in entries)
+    want_d = load_depths and all(("geometry_path" in e[2]) or ("depth_path" in e[2]) for e in entries)
+    viewmats = np.stack([opengl_c2w_to_viewmat(rigid_c2w(fr["transform_matrix"], f"{jp} frame {k}"))
+                         for _, k, fr, _, jp in entries])
+    read_one, full = _frame_reader(root, entries, want_n, want_d)
+    views = read_views(len(entries), read_one, full_shape=full[1], size=res, workers=workers)
+    h, w = views["full_shape"]
+    K = scale_intrinsics(np.stack([_intrinsics(doc, w, h, jp) for _, _, _, doc, jp in entries]), (h, w), views["shape"])
+    train = [i for i, e in enumerate(entries) if e[0] == "train"]
+    test = [i for i, e in enumerate(entries) if e[0] != "train"]
+    return views, K, viewmats, train, test
 
 
 def load_nerf_synthetic(
@@ -179,24 +183,27 @@ def load_nerf_synthetic(
     load_normals: bool = True,
     load_depths: bool = True,
     test_every: int = 10,
+    workers: int | None = None,
 ) -> Dataset:
     """Read a NeRF-synthetic folder (see the module docstring).
 
     Args:
         path: folder with ``transforms_<split>.json``.
-        res: optional output resolution (longer side).
+        res: optional output resolution (longer side); each view is area-resized as it is
+            decoded.
         splits: which transforms files to read; ``"train"`` views go to ``train_idx`` and
             every other split (``"test"``, ``"val"``) to ``test_idx``.
         load_normals: read world normals when the frames provide them.
         load_depths: read depths when the frames provide them.
         test_every: without test views, training view ``i`` is held out when
             ``i % test_every == 0``.
+        workers: decoding threads (default :func:`holowarp.data.common.default_workers`).
     """
     root = Path(path)
     if int(test_every) < 1:
         raise DatasetError(f"--test-every must be >= 1, got {test_every}")
     entries, docs = _read_transforms(root, splits)
-    arr, train, test = _read_frames(root, entries, load_normals, load_depths)
+    views, K, viewmats, train, test = _read_frames(root, entries, load_normals, load_depths, res, workers)
     meta = {"format": "nerf_synthetic"}
     hw = next((d.get("holowarp") for d in docs.values() if isinstance(d.get("holowarp"), dict)), None)
     if hw is not None:
@@ -206,10 +213,10 @@ def load_nerf_synthetic(
         train = [v for j, v in enumerate(train) if j % int(test_every) != 0]
         meta["held_out"] = {"test_every": int(test_every), "views": test}
     gt = root / "gt.obj"
-    ds = Dataset(images=arr.images, masks=arr.masks, K=arr.K, viewmats=arr.viewmats,
-                 train_idx=np.array(train, np.int64), test_idx=np.array(test, np.int64), normals=arr.normals,
-                 depths=arr.depths, root=root, gt_mesh=gt if gt.is_file() else None, name=root.name, meta=meta)
-    return ds.resized(res) if res else ds
+    return Dataset(images=views["image"], masks=views["mask"], K=K, viewmats=viewmats,
+                   train_idx=np.array(train, np.int64), test_idx=np.array(test, np.int64), normals=views.get("normal"),
+                   depths=views.get("depth"), root=root, gt_mesh=gt if gt.is_file() else None, name=root.name,
+                   meta=meta)
 
 
 def write_nerf_synthetic(dataset: Dataset, out_dir: str | os.PathLike) -> Path:

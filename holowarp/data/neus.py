@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from holowarp.data.common import check_mask, frame_number, list_images, read_image
-from holowarp.data.dataset import Dataset, DatasetError
+from holowarp.data.common import check_mask, frame_number, image_size, list_images, read_image, read_mask, read_views
+from holowarp.data.dataset import Dataset, DatasetError, scale_intrinsics
 
 __all__ = ["load_neus", "decompose_projection", "pair_masks"]
 
@@ -128,51 +128,40 @@ def _files(root: Path):
     return cam_path, cams, img_files, mask_files
 
 
-def _read_view(img: Path, msk: Path, shape):
-    im = read_image(img)
+def _read_view(img: Path, msk: Path, shape, full) -> dict:
+    """Image (H', W', 3) and mask (H', W') of one view, area-resized to ``shape`` as decoded;
+    both files must have the size ``full = (first image, (H, W))``."""
+    im = read_image(img, shape=shape, expect=full)
     if im.ndim == 2:
         im = np.repeat(im[..., None], 3, axis=-1)
-    mk = read_image(msk)
-    if mk.ndim == 3:
-        mk = mk[..., :3].max(axis=-1) if mk.shape[2] >= 3 else mk[..., 0]
-    if shape is not None and im.shape[:2] != shape[0]:
-        raise DatasetError(f"{img}: size {im.shape[1]}x{im.shape[0]} differs from {shape[1]} "
-                           f"({shape[0][1]}x{shape[0][0]})")
-    if mk.shape != im.shape[:2]:
-        raise DatasetError(f"{msk}: mask size {mk.shape[1]}x{mk.shape[0]} differs from its image {img.name} "
-                           f"({im.shape[1]}x{im.shape[0]})")
+    mk = read_mask(msk, shape=shape, expect=(f"its image {img.name}", full[1]))
     check_mask(mk, str(msk))
-    return im[..., :3], mk
+    return {"image": np.ascontiguousarray(im[..., :3]), "mask": mk}
 
 
-def load_neus(path: str | os.PathLike, *, res: int | None = None, test_every: int = 10) -> Dataset:
+def load_neus(path: str | os.PathLike, *, res: int | None = None, test_every: int = 10,
+              workers: int | None = None) -> Dataset:
     """Read a NeuS/IDR folder (see the module docstring).
 
     Args:
         path: dataset folder.
-        res: optional output resolution (longer side).
+        res: optional output resolution (longer side); each view is area-resized as it is
+            decoded.
         test_every: view ``i`` is a test view when ``i % test_every == 0``.
+        workers: decoding threads (default :func:`holowarp.data.common.default_workers`).
     """
     root = Path(path)
     if int(test_every) < 1:
         raise DatasetError(f"--test-every must be >= 1, got {test_every}")
     cam_path, cams, img_files, mask_files = _files(root)
     n = len(img_files)
-    images = masks = None
-    K = np.zeros((n, 3, 3))
-    viewmats = np.zeros((n, 4, 4))
-    first = None
-    for i in range(n):
-        im, mk = _read_view(img_files[i], mask_files[i], first)
-        if first is None:
-            first = (im.shape[:2], img_files[i])
-            images = np.empty((n,) + im.shape[:2] + (3,), np.float32)
-            masks = np.empty((n,) + im.shape[:2], np.float32)
-        images[i], masks[i] = im, mk
-        K[i], viewmats[i] = _camera(cams, i, cam_path)
+    cameras = [_camera(cams, i, cam_path) for i in range(n)]  # bad cameras fail before any decoding
+    full = (img_files[0], image_size(img_files[0]))
+    views = read_views(n, lambda i, shape: _read_view(img_files[i], mask_files[i], shape, full), full_shape=full[1],
+                       size=res, workers=workers)
+    K = scale_intrinsics(np.stack([c[0] for c in cameras]), views["full_shape"], views["shape"])
     idx = np.arange(n)
-    ds = Dataset(images=images, masks=masks, K=K, viewmats=viewmats, train_idx=idx[idx % test_every != 0],
-                 test_idx=idx[idx % test_every == 0], root=root,
-                 gt_mesh=(root / "gt.obj") if (root / "gt.obj").is_file() else None, name=root.name,
-                 meta={"format": "neus", "mask_files": [str(m.name) for m in mask_files]})
-    return ds.resized(res) if res else ds
+    return Dataset(images=views["image"], masks=views["mask"], K=K, viewmats=np.stack([c[1] for c in cameras]),
+                   train_idx=idx[idx % test_every != 0], test_idx=idx[idx % test_every == 0], root=root,
+                   gt_mesh=(root / "gt.obj") if (root / "gt.obj").is_file() else None, name=root.name,
+                   meta={"format": "neus", "mask_files": [str(m.name) for m in mask_files]})
