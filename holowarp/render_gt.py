@@ -188,7 +188,8 @@ class GTRenderer:
 
         Args:
             viewmat: (4, 4) world-to-camera, OpenCV axes.
-            K: (3, 3) intrinsics in pixels.
+            K: (3, 3) intrinsics in pixels (focal lengths, principal point and the skew
+                ``K[0, 1]``: the ray through image point (u, v) is ``K^-1 [u, v, 1]``).
             width, height: image size in pixels.
             supersample: override the renderer's rays-per-pixel along each axis.
 

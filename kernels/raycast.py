@@ -1,7 +1,8 @@
 """Ground-truth ray casting on a ``wp.Mesh`` BVH (method.md §2).
 
 One thread per pixel casts ``ss x ss`` stratified rays through the pixel (pixel centres at
-``(x + 0.5, y + 0.5)``, OpenCV camera: x right, y down, z forward), finds the closest hit with
+``(x + 0.5, y + 0.5)``, OpenCV camera: x right, y down, z forward; the ray through image point
+``(u, v)`` is ``K^-1 [u, v, 1]``, skew ``K[0, 1]`` included), finds the closest hit with
 ``wp.mesh_query_ray`` and accumulates
 
 - coverage (alpha = fraction of the pixel's rays that hit),
@@ -89,6 +90,7 @@ def raycast_kernel(
     fy: float,
     cx: float,
     cy: float,
+    skew: float,  # K[0, 1]: the skew of decomposed projections (NeuS/IDR)
     ss: int,
     max_t: float,
     rgba: wp.array2d(dtype=wp.vec4),  # [H, W] straight RGB + coverage
@@ -108,7 +110,9 @@ def raycast_kernel(
         for sx in range(ss):
             px = float(col) + (float(sx) + 0.5) * inv_ss
             py = float(row) + (float(sy) + 0.5) * inv_ss
-            d_cam = wp.normalize(wp.vec3((px - cx) / fx, (py - cy) / fy, 1.0))
+            # K^-1 [px, py, 1] for K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]
+            y_cam = (py - cy) / fy
+            d_cam = wp.normalize(wp.vec3((px - cx - skew * y_cam) / fx, y_cam, 1.0))
             d = cam_rot * d_cam
             q = wp.mesh_query_ray(mesh, cam_pos, d, max_t)
             if q.result:

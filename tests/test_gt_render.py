@@ -165,6 +165,47 @@ def test_vertex_colours_interpolate_barycentrically(rng):
     np.testing.assert_allclose(out["rgba"][..., :3][inside], (p @ A.T + b)[inside], atol=1e-4)
 
 
+def _skewed_camera(rng, width, height):
+    """A random upper-triangular K with skew and unequal focal lengths, and a camera looking
+    down at the z = 0 plane from a random tilted pose."""
+    f = rng.uniform(0.9, 1.3) * width
+    K = np.array([[f, rng.uniform(0.04, 0.12) * f * rng.choice([-1, 1]), width * rng.uniform(0.4, 0.6)],
+                  [0.0, f * rng.uniform(0.85, 1.15), height * rng.uniform(0.4, 0.6)], [0.0, 0.0, 1.0]])
+    eye = np.r_[rng.uniform(-0.4, 0.4, 2), rng.uniform(2.5, 3.5)]
+    return look_at(eye, np.r_[rng.uniform(-0.1, 0.1, 2), 0.0], (rng.uniform(-0.3, 0.3), 1.0, 0.0)), K
+
+
+def _plane_hits_through_K(V, K, width, height):
+    """World points (H, W, 3) where the rays ``K^-1 [x + 0.5, y + 0.5, 1]`` meet z = 0, and
+    their camera z-depth (H, W): dense float64 NumPy, independent of the renderer."""
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    d_cam = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T  # z component 1
+    R, t = V[:3, :3], V[:3, 3]
+    o = -R.T @ t
+    d = d_cam @ R  # R^T d_cam
+    s = -o[2] / d[..., 2]
+    return o + s[..., None] * d, s  # depth = s * d_cam.z = s
+
+
+def test_rays_follow_the_inverse_of_a_skewed_non_square_K(rng):
+    width, height = 40, 28
+    V, K = _skewed_camera(rng, width, height)
+    A = rng.uniform(-0.2, 0.2, (3, 3))
+    b = rng.uniform(0.4, 0.6, 3)
+    quad = QUAD * 4.0  # covers the whole image
+    r = GTRenderer(quad, QUAD_FACES, vertex_colors=quad @ A.T + b, lighting=FLAT_WHITE)
+    out = r.render(V, K, width, height)
+    p, depth = _plane_hits_through_K(V, K, width, height)
+    assert out["rgba"].shape == (height, width, 4) and (out["mask"] == 1).all()
+    np.testing.assert_allclose(out["rgba"][..., :3], p @ A.T + b, atol=1e-4)
+    np.testing.assert_allclose(out["depth"], depth, rtol=1e-5)
+    # The check has teeth: dropping the skew moves the hits by far more than the tolerance.
+    K0 = K.copy()
+    K0[0, 1] = 0.0
+    p0, _ = _plane_hits_through_K(V, K0, width, height)
+    assert np.abs((p0 - p) @ A.T).max() > 1e-2
+
+
 def test_supersampled_alpha_is_the_covered_fraction_of_the_pixel():
     V, K = _quad_camera()
     f = K[0, 0]

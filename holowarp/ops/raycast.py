@@ -63,7 +63,9 @@ class RayCaster:
 
     def cast(self, viewmat: np.ndarray, K: np.ndarray, width: int, height: int, supersample: int) -> dict:
         """Cast ``supersample``² stratified rays per pixel for one OpenCV camera
-        (``viewmat`` (4, 4) world-to-camera with an orthonormal rotation, ``K`` (3, 3)).
+        (``viewmat`` (4, 4) world-to-camera with an orthonormal rotation, ``K`` (3, 3) upper
+        triangular: focal lengths, principal point and skew ``K[0, 1]``; the ray through
+        image point (u, v) is ``K^-1 [u, v, 1]``).
 
         Returns the Warp output arrays without a host copy: ``rgba`` (H, W) vec4 (straight RGB,
         coverage), ``normal`` (H, W) vec3 (world, 0 on background), ``depth`` (H, W) camera
@@ -72,6 +74,9 @@ class RayCaster:
         from holowarp.kernels import raycast as rk
 
         wp, dev = self._wp, self.device
+        K = np.asarray(K, dtype=np.float64)
+        if abs(K[1, 0]) > 0 or abs(K[2, 0]) > 0 or abs(K[2, 1]) > 0 or abs(K[2, 2] - 1.0) > 1e-9:
+            raise ValueError(f"RayCaster.cast: K must be upper triangular with K[2, 2] = 1, got {K.tolist()}")
         R = viewmat[:3, :3]
         cam_pos = -R.T @ viewmat[:3, 3]
         rgba = wp.empty((height, width), dtype=wp.vec4, device=dev)
@@ -86,7 +91,8 @@ class RayCaster:
                 self._mesh.id, self._faces, self._corner_normals, int(self.smooth), self.color_mode, self._albedo,
                 self._vertex_colors, self._face_uvs, self._uvs, self._texture, self._light_dirs, self._light_rgb,
                 self._ambient, wp.vec3(*cam_pos.astype(np.float32)), wp.mat33(*R.T.astype(np.float32).ravel()),
-                float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), max(int(supersample), 1), max_t,
+                float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), float(K[0, 1]), max(int(supersample), 1),
+                max_t,
             ],
             outputs=[rgba, normal, depth, face],
             device=dev,
