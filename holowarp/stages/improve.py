@@ -322,25 +322,13 @@ def _closest_on_triangles(p, a, b, c):
 
 def _point_surface_distance(points: np.ndarray, V: np.ndarray, F: np.ndarray, device: str = "cpu") -> np.ndarray:
     """Distance (P,) from each point to the triangle surface (V, F): Warp's mesh BVH
-    (:func:`holowarp.kernels.improve.point_mesh_distance_kernel`, float32) finds the closest
+    (float32, :meth:`holowarp.ops.improve.ImproveKernels.closest_faces`) finds the closest
     triangle, and the distance to it is then taken exactly in float64."""
-    from holowarp.device import init_warp
-    from holowarp.kernels import improve as K
+    from holowarp.ops.improve import ImproveKernels
 
-    wp = init_warp()
-    c = V.mean(axis=0)
-    span = float(np.ptp(np.concatenate([V, points]), axis=0).max()) or 1.0
-    mesh = wp.Mesh(points=wp.array((V - c).astype(np.float32), dtype=wp.vec3, device=device),
-                   indices=wp.array(np.ascontiguousarray(F, dtype=np.int32).reshape(-1), dtype=wp.int32, device=device))
-    pts = wp.array((points - c).astype(np.float32), dtype=wp.vec3, device=device)
-    d32 = wp.empty(len(points), dtype=float, device=device)
-    face = wp.empty(len(points), dtype=wp.int32, device=device)
-    wp.launch(K.point_mesh_distance_kernel, dim=len(points), inputs=[mesh.id, pts, 4.0 * span],
-              outputs=[d32, face], device=device)
-    f = face.numpy().astype(np.int64)
-    hit = f >= 0
-    d = d32.numpy().astype(np.float64)
-    g = F[f[hit]]
+    face, d = ImproveKernels(device).closest_faces(points, V, F)
+    hit = face >= 0
+    g = F[face[hit]]
     d[hit] = _closest_on_triangles(points[hit], V[g[:, 0]], V[g[:, 1]], V[g[:, 2]])
     return d
 
@@ -566,15 +554,15 @@ def _locate(V: np.ndarray, T: np.ndarray, old: np.ndarray, points: np.ndarray, o
 class _Work:
     """The mesh under improvement: positions, tets, parents, surface budget, counters.
 
-    Qualities are evaluated by :func:`holowarp.kernels.improve.tet_quality_kernel` on
-    ``device`` (whole meshes and flip candidates alike)."""
+    Qualities come from :class:`holowarp.ops.improve.ImproveKernels` on ``device`` (whole
+    meshes and flip candidates alike)."""
 
     def __init__(self, mesh: TetMesh, cfg: ImproveConfig, device: str):
-        from holowarp.device import init_warp
-        from holowarp.kernels import improve as K
+        from holowarp.ops.improve import ImproveKernels
 
-        self.wp, self.K, self.device = init_warp(), K, device
-        self.V = np.array(mesh.vertices, dtype=np.float64)  # [N, 3]
+        self.kernels = ImproveKernels(device)
+        self.device = self.kernels.device
+        self.V = np.array(mesh.vertices, dtype=np.float64)  # [N, 3], replaced, never edited in place
         self.T = np.array(mesh.tets, dtype=np.int64)  # [M, 4]
         self.parent = np.arange(mesh.num_tets, dtype=np.int64)  # [M] input tet of each tet
         # [N] bound, m, on how far every boundary triangle at the vertex has moved from the
@@ -588,7 +576,6 @@ class _Work:
                        "cap_removal": 0, "cap_vertex_removal": 0}
         self.splits = {"edge": 0, "face": 0}
         self._mesh = None
-        self._x = None
         self._q = None
 
     def mesh(self) -> TetMesh:
@@ -596,24 +583,14 @@ class _Work:
             self._mesh = TetMesh(self.V.copy(), self.T, validate=False)
         return self._mesh
 
-    def changed(self, positions: bool = True):
-        """Forget derived data after ``T`` (and, if ``positions``, ``V``) changed."""
+    def changed(self):
+        """Forget derived data after ``T`` or ``V`` changed (``V`` is always replaced)."""
         self._mesh = None
         self._q = None
-        if positions:
-            self._x = None
 
     def quality_of(self, T: np.ndarray) -> np.ndarray:
         """Quality (K,) of the tets T (K, 4) at the current positions."""
-        if len(T) == 0:
-            return np.zeros(0)
-        wp = self.wp
-        if self._x is None:
-            self._x = wp.array(self.V, dtype=wp.vec3d, device=self.device)
-        t = wp.array(np.ascontiguousarray(T, dtype=np.int32), dtype=wp.vec4i, device=self.device)
-        out = wp.empty(len(T), dtype=wp.float64, device=self.device)
-        wp.launch(self.K.tet_quality_kernel, dim=len(T), inputs=[self._x, t, self.mode], outputs=[out], device=self.device)
-        return out.numpy()
+        return self.kernels.quality(self.V, T, self.mode)
 
     def quality(self) -> np.ndarray:
         if self._q is None:
@@ -627,7 +604,7 @@ class _Work:
         self.T = np.concatenate([self.T[keep], new_tets])
         self.parent = np.concatenate([self.parent[keep], new_parent.reshape(-1)])
         self.dirty = np.concatenate([self.dirty[keep], np.ones(len(new_tets), dtype=bool)])
-        self.changed(positions=False)
+        self.changed()
 
 
 def _retriangulate_rings(w: _Work, u, v, rv, m: int, edges: _EdgeTable):
@@ -745,82 +722,102 @@ def _boundary_edge_keys(mesh: TetMesh, N: int) -> np.ndarray:
     return np.unique(_edge_keys(e[:, 0], e[:, 1], N))
 
 
+class _Candidates:
+    """Boundary changes collected for one pass: replaced tets, new tets, touched vertices,
+    priority, surface move (m) and kind (0: cap vertex, 1: cap, k >= 2: fan of k)."""
+
+    def __init__(self):
+        self.old, self.new, self.verts, self.prio, self.h, self.kind = [], [], [], [], [], []
+
+    def add(self, ok, old, new, verts, prio, h, kind: int):
+        if ok.any():
+            n = int(ok.sum())
+            new = new[ok] if new.shape[1] else np.full((n, 1, 4), -1, dtype=np.int64)
+            for lst, x in ((self.old, old[ok]), (self.new, new), (self.verts, verts[ok]), (self.prio, prio[ok]),
+                           (self.h, h[ok]), (self.kind, np.full(n, kind))):
+                lst.append(x)
+
+    def arrays(self):
+        return (_pad(self.old), _pad(self.new), _pad(self.verts), np.concatenate(self.prio), np.concatenate(self.h),
+                np.concatenate(self.kind))
+
+
+def _exposable(q, capped, under, q_self, threshold):
+    """May the tets ``under`` (C, A) (-1: none) be exposed to the surface by deleting caps of
+    quality ``q_self`` (C,)? Deleting a cap hands the tets under it to the surface, where only
+    the surface budget could still improve them: so only decent ones, or caps themselves
+    (two boundary faces) no worse than the deleted one, which become deletable in turn."""
+    u = np.maximum(under, 0)
+    return ((under < 0) | (q[u] >= threshold) | (capped[u] & (q[u] >= q_self[:, None]))).all(axis=1)
+
+
+def _fan_candidates(w: _Work, cand: _Candidates, edges: _EdgeTable, k: int, bound: float, ctx: dict):
+    """Removals of boundary edges whose open fan has k tets (k = 1: a cap)."""
+    cfg, q, V, N = w.cfg, ctx["q"], w.V, len(w.V)
+    g = np.flatnonzero(edges.boundary & (edges.n == k))
+    rt = edges.tets[g, :k]
+    qold = q[rt].min(axis=1) if len(g) else np.zeros(0)
+    s = qold < cfg.boundary_threshold
+    g, rt, qold = g[s], rt[s], qold[s]
+    if len(g) == 0:
+        return
+    rv = edges.verts[g, : k + 1]
+    u, v, p0, pk = edges.u[g], edges.v[g], rv[:, 0], rv[:, k]
+    # The quad's two boundary triangles flip to its other diagonal.
+    h = cfg.hausdorff_margin * _local_hausdorff(
+        V, np.stack([np.stack([u, v, p0], 1), np.stack([u, v, pk], 1)], 1),
+        np.stack([np.stack([u, p0, pk], 1), np.stack([v, p0, pk], 1)], 1),
+    )
+    touched = np.concatenate([u[:, None], v[:, None], rv], axis=1)
+    ok = h + w.err[touched].max(axis=1) <= bound
+    if k == 1:
+        # The chord becomes a boundary edge: it must not be one already (a pinch).
+        ok &= ~np.isin(_edge_keys(p0, pk, N), ctx["bnd_keys"])
+        ok &= _exposable(q, ctx["capped"], ctx["adj"][rt[:, 0]], qold, cfg.boundary_threshold)
+        new = np.zeros((len(g), 0, 4), dtype=np.int64)
+        prio = 1.0 - qold  # the worse the cap, the sooner
+    else:
+        ok &= ~edges.contains(p0, pk)
+        qnew, new, diag_ok = _retriangulate_rings(w, u, v, rv, k + 1, edges)
+        prio = qnew - qold
+        ok &= diag_ok & (prio > cfg.min_gain)
+    cand.add(ok, rt, new, touched, prio, h, k)
+
+
+def _cap_vertex_candidates(w: _Work, cand: _Candidates, bound: float, ctx: dict):
+    """Deletions of tets whose apex has valence one (three boundary faces), with the apex."""
+    cfg, q, T, bmask = w.cfg, ctx["q"], w.T, ctx["bmask"]
+    three = np.flatnonzero((bmask.sum(axis=1) == 3) & (q < cfg.boundary_threshold))
+    if len(three) == 0:
+        return
+    loc = np.argmin(bmask[three], axis=1)  # the apex is opposite the interior face
+    apex = T[three, loc]
+    base = T[three[:, None], TET_FACES[loc]]
+    cone = np.stack([np.stack([apex, base[:, i], base[:, (i + 1) % 3]], 1) for i in range(3)], 1)
+    h = cfg.hausdorff_margin * _local_hausdorff(w.V, cone, base[:, None, :])
+    valence = np.bincount(T.reshape(-1), minlength=len(w.V))
+    ok = (valence[apex] == 1) & (h + w.err[T[three]].max(axis=1) <= bound)
+    ok &= _exposable(q, ctx["capped"], ctx["adj"][three, loc][:, None], q[three], cfg.boundary_threshold)
+    ok &= ctx["adj"][three, loc] >= 0
+    cand.add(ok, three[:, None], np.zeros((len(three), 0, 4), dtype=np.int64), T[three], 1.0 - q[three], h, 0)
+
+
 def _boundary_pass(w: _Work, signature: tuple, bound: float) -> int:
     """One batch of boundary edge removals and cap deletions (module docstring, step 1).
     Returns the number applied."""
-    cfg = w.cfg
-    T, V = w.T, w.V
-    N = len(V)
-    q = w.quality()
+    N = len(w.V)
     mesh = w.mesh()
-    K = cfg.max_boundary_ring
-    edges = _EdgeTable(T, N, K + 1)
-    bnd_keys = _boundary_edge_keys(mesh, N)
-    adj = mesh.face_adjacency().astype(np.int64)
     bmask = mesh.boundary_mask()
-    capped = bmask.sum(axis=1) >= 2
-    err = w.err
-    c_old, c_new, c_verts, c_prio, c_h, c_kind = [], [], [], [], [], []
-    for k in range(1, K + 1):
-        g = np.flatnonzero(edges.boundary & (edges.n == k))
-        rt = edges.tets[g, :k]
-        qold = q[rt].min(axis=1) if len(g) else np.zeros(0)
-        s = qold < cfg.boundary_threshold
-        g, rt, qold = g[s], rt[s], qold[s]
-        if len(g) == 0:
-            continue
-        rv = edges.verts[g, : k + 1]
-        u, v, p0, pk = edges.u[g], edges.v[g], rv[:, 0], rv[:, k]
-        # The quad's two boundary triangles flip to its other diagonal.
-        h = cfg.hausdorff_margin * _local_hausdorff(
-            V, np.stack([np.stack([u, v, p0], 1), np.stack([u, v, pk], 1)], 1),
-            np.stack([np.stack([u, p0, pk], 1), np.stack([v, p0, pk], 1)], 1),
-        )
-        touched = np.concatenate([u[:, None], v[:, None], rv], axis=1)
-        ok = h + err[touched].max(axis=1) <= bound
-        if k == 1:
-            # The chord becomes a boundary edge: it must not be one already (a pinch).
-            ok &= ~np.isin(_edge_keys(p0, pk, N), bnd_keys)
-            # Deleting a cap exposes the tets under it to the surface, where only the
-            # surface budget could still improve them: wait until they are decent, unless
-            # a neighbour is a cap itself (two boundary faces) and no worse, which then
-            # gets deletable in turn.
-            under = adj[rt[:, 0]]
-            qu = q[np.maximum(under, 0)]
-            ok &= ((under < 0) | (qu >= cfg.boundary_threshold) | (capped[np.maximum(under, 0)] & (qu >= qold[:, None]))).all(axis=1)
-            new = np.zeros((len(g), 0, 4), dtype=np.int64)
-            prio = 1.0 - qold  # the worse the cap, the sooner
-        else:
-            ok &= ~edges.contains(p0, pk)
-            qnew, new, diag_ok = _retriangulate_rings(w, u, v, rv, k + 1, edges)
-            prio = qnew - qold
-            ok &= diag_ok & (prio > cfg.min_gain)
-        if ok.any():
-            c_old.append(rt[ok]), c_new.append(new[ok]), c_verts.append(touched[ok])
-            c_prio.append(prio[ok]), c_h.append(h[ok]), c_kind.append(np.full(int(ok.sum()), k))
-
-    # ---- tets whose apex has valence one (three boundary faces): delete tet and apex.
-    three = np.flatnonzero((bmask.sum(axis=1) == 3) & (q < cfg.boundary_threshold))
-    if len(three):
-        loc = np.argmin(bmask[three], axis=1)  # the apex is opposite the interior face
-        apex = T[three, loc]
-        valence = np.bincount(T.reshape(-1), minlength=N)
-        base = T[three[:, None], TET_FACES[loc]]
-        cone = np.stack([np.stack([apex, base[:, i], base[:, (i + 1) % 3]], 1) for i in range(3)], 1)
-        h = cfg.hausdorff_margin * _local_hausdorff(V, cone, base[:, None, :])
-        under = adj[three, loc]
-        ok = (valence[apex] == 1) & (h + err[T[three]].max(axis=1) <= bound)
-        qu = q[np.maximum(under, 0)]
-        ok &= (under >= 0) & ((qu >= cfg.boundary_threshold) | (capped[np.maximum(under, 0)] & (qu >= q[three])))
-        if ok.any():
-            c_old.append(three[ok, None]), c_new.append(np.zeros((int(ok.sum()), 0, 4), dtype=np.int64))
-            c_verts.append(T[three[ok]]), c_prio.append(1.0 - q[three[ok]]), c_h.append(h[ok])
-            c_kind.append(np.zeros(int(ok.sum()), dtype=np.int64))
-    if not c_old:
+    ctx = {"q": w.quality(), "bnd_keys": _boundary_edge_keys(mesh, N), "adj": mesh.face_adjacency().astype(np.int64),
+           "bmask": bmask, "capped": bmask.sum(axis=1) >= 2}
+    edges = _EdgeTable(w.T, N, w.cfg.max_boundary_ring + 1)
+    cand = _Candidates()
+    for k in range(1, w.cfg.max_boundary_ring + 1):
+        _fan_candidates(w, cand, edges, k, bound, ctx)
+    _cap_vertex_candidates(w, cand, bound, ctx)
+    if not cand.old:
         return 0
-    old, vts = _pad(c_old), _pad(c_verts)
-    new = _pad([x if x.shape[1] else np.full((len(x), 1, 4), -1, np.int64) for x in c_new])
-    prio, h, kind = np.concatenate(c_prio), np.concatenate(c_h), np.concatenate(c_kind)
+    old, new, vts, prio, h, kind = cand.arrays()
     # Vertex-disjoint: two boundary changes sharing a vertex are never judged apart.
     take = _select_independent(vts, prio, N)
     old, new, vts, h, kind = old[take], new[take], vts[take], h[take], kind[take]
@@ -828,7 +825,7 @@ def _boundary_pass(w: _Work, signature: tuple, bound: float) -> int:
     if len(applied) == 0:
         return 0
     vv = vts[applied]
-    e_new = np.where(vv >= 0, err[np.maximum(vv, 0)], 0.0).max(axis=1) + h[applied]
+    e_new = np.where(vv >= 0, w.err[np.maximum(vv, 0)], 0.0).max(axis=1) + h[applied]
     # Every new boundary triangle of a change lies within e_new of the input surface.
     np.maximum.at(w.err, vv[vv >= 0], np.broadcast_to(e_new[:, None], vv.shape)[vv >= 0])
     kk = kind[applied]
@@ -942,9 +939,7 @@ def _smooth(w: _Work, proj: np.ndarray, bound: float, rng, passes: int, only=Non
     vertices, which must form one independent set (no two in a tet); by default every
     vertex with a tet below ``smooth_threshold`` (``boundary_threshold`` for boundary
     vertices) in its star, in the independent sets of a colouring."""
-    wp, K, cfg, dev = w.wp, w.K, w.cfg, w.device
-    T = w.T
-    N = len(w.V)
+    cfg, T, N = w.cfg, w.T, len(w.V)
     mesh = w.mesh()
     bf = mesh.boundary_faces().astype(np.int64)
     on_b = np.zeros(N, dtype=bool)
@@ -961,40 +956,24 @@ def _smooth(w: _Work, proj: np.ndarray, bound: float, rng, passes: int, only=Non
         movable[only] = True
     if not movable.any():
         return movable
-    offs, st, sl = _vertex_stars(T, N)
     f_offs = np.zeros(N + 1, dtype=np.int64)  # boundary triangles per vertex (CSR)
     np.cumsum(np.bincount(bf.reshape(-1), minlength=N), out=f_offs[1:])
     f_ids = np.argsort(bf.reshape(-1), kind="stable") // 3
-
-    def i32(a):
-        return wp.array(np.ascontiguousarray(a, dtype=np.int32), dtype=wp.int32, device=dev)
-
-    x = wp.array(w.V, dtype=wp.vec3d, device=dev)
-    tets = wp.array(T.astype(np.int32), dtype=wp.vec4i, device=dev)
-    offs_w, st_w, sl_w, fo_w, fi_w = i32(offs), i32(st), i32(sl), i32(f_offs), i32(f_ids)
-    bf_w = wp.array(bf.astype(np.int32) if len(bf) else np.zeros((1, 3), np.int32), dtype=wp.vec3i, device=dev)
-    proj_w = wp.array(proj, dtype=wp.mat33d, device=dev)
+    params = (cfg.smooth_beta, cfg.smooth_step, cfg.smooth_line_steps, cfg.smooth_fd, 0.1 * cfg.min_gain,
+              cfg.surface_samples, cfg.hausdorff_margin)
+    sp = w.kernels.smoothing_pass(w.V, T, _vertex_stars(T, N), (f_offs, f_ids, bf), proj, w.mode, params)
     edges = mesh.edges().astype(np.int64) if only is None else None
     moved = np.zeros(N, dtype=bool)
-    consts = [wp.float64(cfg.smooth_beta), wp.float64(cfg.smooth_step), int(cfg.smooth_line_steps),
-              wp.float64(cfg.smooth_fd), wp.float64(0.1 * cfg.min_gain), int(cfg.surface_samples),
-              wp.float64(cfg.hausdorff_margin)]
     for _ in range(passes):
         classes = [np.flatnonzero(movable)] if only is not None else _colour_classes(edges, movable, rng)
-        budget = wp.array(np.maximum(bound - w.err, 0.0), dtype=wp.float64, device=dev)
         for cls in classes:
-            qb, qa, hm = (wp.zeros(len(cls), dtype=wp.float64, device=dev) for _ in range(3))
-            wp.launch(K.smooth_vertices_kernel, dim=len(cls),
-                      inputs=[x, tets, offs_w, st_w, sl_w, fo_w, fi_w, bf_w, i32(cls), proj_w, budget, w.mode, *consts],
-                      outputs=[qb, qa, hm], device=dev)
-            went = qa.numpy() > qb.numpy()
+            qb, qa, h = sp.step(cls, np.maximum(bound - w.err, 0.0))
+            went = qa > qb
             moved[cls[went]] = True
-            h = hm.numpy()
             charged = went & (h > 0)
             if charged.any():
                 _charge_umbrellas(w, cls[charged], h[charged], bf, f_offs, f_ids)
-                budget = wp.array(np.maximum(bound - w.err, 0.0), dtype=wp.float64, device=dev)
-    w.V = x.numpy().astype(np.float64).copy()
+    w.V = sp.positions()
     w.changed()
     # Every tet of a moved vertex may now gain a flip.
     w.dirty |= moved[T].any(axis=1)
@@ -1011,17 +990,11 @@ def _charge_umbrellas(w: _Work, verts, h, bf, f_offs, f_ids):
 
 
 # ---------------------------------------------------------------------------- sliver removal
-def _split_pass(w: _Work, limit: int) -> int:
-    """Sliver removal by vertex insertion (module docstring, step 4) for at most ``limit``
-    tets below ``split_threshold``, worst first. Returns the splits kept."""
-    cfg = w.cfg
-    T, V = w.T, w.V
-    N, M = len(V), len(T)
-    q = w.quality()
-    bad = np.flatnonzero(q < cfg.split_threshold)
-    if len(bad) == 0 or limit <= 0:
-        return 0
-    bad = bad[np.argsort(q[bad])][:limit]
+def _split_simplices(w: _Work, bad: np.ndarray, q: np.ndarray):
+    """For each bad tet, the simplex to split and the tets holding it: its longest interior
+    edge, else (all edges on the boundary) its largest interior face. Returns simplices
+    (S, 3) (edges padded with -1), rings (S, R) (-1 padded) and priorities (S,)."""
+    T, V, N = w.T, w.V, len(w.V)
     mesh = w.mesh()
     eu, ev = T[bad][:, TET_EDGES[:, 0]], T[bad][:, TET_EDGES[:, 1]]
     inner = ~np.isin(_edge_keys(eu, ev, N), _boundary_edge_keys(mesh, N))  # [B, 6]
@@ -1029,14 +1002,13 @@ def _split_pass(w: _Work, limit: int) -> int:
     simplices, rings, prio = [], [], []
     eb = np.flatnonzero(has_inner)
     if len(eb):
-        # Edge split at the longest interior edge: all tets of u's star that hold v.
         ln = np.linalg.norm(V[eu[eb]] - V[ev[eb]], axis=2)
         j = np.argmax(np.where(inner[eb], ln, -1.0), axis=1)
         su, sv = eu[eb, j], ev[eb, j]
         _, first = np.unique(_edge_keys(su, sv, N), return_index=True)
         su, sv = su[first], sv[first]
         offs, st, _ = _vertex_stars(T, N)
-        owner, flat = _gather_csr(offs, st, su)
+        owner, flat = _gather_csr(offs, st, su)  # the tets of u's star that hold v
         hit = np.any(T[flat] == sv[owner][:, None], axis=1)
         owner, flat = owner[hit], flat[hit]
         n_ring = np.bincount(owner, minlength=len(su))
@@ -1049,7 +1021,6 @@ def _split_pass(w: _Work, limit: int) -> int:
         prio.append(-worst)
     fb = bad[~has_inner]
     if len(fb):
-        # Face split at the largest interior face of a tet whose edges are all boundary.
         adj = mesh.face_adjacency().astype(np.int64)[fb]
         P = V[T[fb][:, TET_FACES]]  # [F, 4, 3, 3]
         area = np.linalg.norm(np.cross(P[:, :, 1] - P[:, :, 0], P[:, :, 2] - P[:, :, 0]), axis=2)
@@ -1062,9 +1033,24 @@ def _split_pass(w: _Work, limit: int) -> int:
             rings.append(np.stack([fb, other], axis=1))
             prio.append(-np.minimum(q[fb], q[other]))
     if not simplices:
+        return None
+    return np.concatenate(simplices), _pad(rings), np.concatenate(prio)
+
+
+def _split_pass(w: _Work, limit: int) -> int:
+    """Sliver removal by vertex insertion (module docstring, step 4) for at most ``limit``
+    tets below ``split_threshold``, worst first. Returns the splits kept."""
+    cfg, T, V = w.cfg, w.T, w.V
+    N, M = len(V), len(T)
+    q = w.quality()
+    bad = np.flatnonzero(q < cfg.split_threshold)
+    if len(bad) == 0 or limit <= 0:
         return 0
-    ring, simplex = _pad(rings), np.concatenate(simplices)
-    take = _select_independent(ring, np.concatenate(prio), M)
+    found = _split_simplices(w, bad[np.argsort(q[bad])][:limit], q)
+    if found is None:
+        return 0
+    simplex, ring, prio = found
+    take = _select_independent(ring, prio, M)
     ring, simplex = ring[take], simplex[take]
     S = len(simplex)
     m_ids = N + np.arange(S)
@@ -1087,7 +1073,6 @@ def _split_pass(w: _Work, limit: int) -> int:
     w.V = np.concatenate([V, mid])
     w.err = np.concatenate([w.err, np.zeros(S)])  # new vertices are interior
     w.replace(rt, kids, kid_parent)
-    w.changed()
     Nn = len(w.V)
     _smooth(w, np.broadcast_to(np.eye(3), (Nn, 3, 3)).copy(), 0.0, None, cfg.split_smooth_passes, only=m_ids)
     kid_worst = np.full(S, np.inf)
@@ -1161,26 +1146,11 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
     rng = np.random.default_rng(0)
     q0 = w.quality()
     before = _summary(w.V, w.T, q0)
-    moved_any = np.zeros(len(w.V), dtype=bool)
+    moved = np.zeros(len(w.V), dtype=bool)
     best_worst, best_mean = float(q0.min()), float(q0.mean())
     rounds = 0
     for rounds in range(1, cfg.max_rounds + 1):
-        # Boundary changes first: an interior flip under a flattened cap would otherwise
-        # bury it under tets that no surface operation can reach.
-        if cfg.max_boundary_ring > 0 and bound > 0:
-            for _ in range(cfg.max_flip_passes):
-                if _boundary_pass(w, signature, bound) == 0:
-                    break
-        for _ in range(cfg.max_flip_passes):
-            if _interior_flip_pass(w) == 0:
-                break
-        moved = _smooth(w, _tangent_projectors(w.mesh(), cfg.feature_ratio), cfg.smooth_budget_share * bound, rng,
-                        cfg.smooth_passes)
-        moved_any = np.concatenate([moved_any, np.zeros(len(w.V) - len(moved_any), dtype=bool)])
-        moved_any[: len(moved)] |= moved
-        for _ in range(cfg.max_flip_passes):
-            if _interior_flip_pass(w) == 0:
-                break
+        moved = _round(w, signature, bound, rng, moved)
         q = w.quality()
         worst, mean = float(q.min()), float(q.mean())
         progressed = worst > best_worst + cfg.min_gain or mean > best_mean + cfg.mean_tol
@@ -1188,22 +1158,52 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
         if progress is not None:
             progress.update(1)
             progress.set_postfix(worst=f"{worst:.3f}", mean=f"{mean:.3f}", tets=len(w.T), refresh=False)
-        if worst < cfg.split_threshold:
-            if _split_pass(w, max(1, int(cfg.max_splits_fraction * len(w.T)))) > 0:
-                continue
+        if worst < cfg.split_threshold and _split_pass(w, max(1, int(cfg.max_splits_fraction * len(w.T)))) > 0:
+            continue
         if not progressed:
             break
     out, _ = TetMesh(w.V, w.T, validate=False).remove_unused_vertices()
-    after = _summary(w.V, w.T, w.quality())
+    info = _report(w, mesh, out, before, L, signature, int(moved.sum()))
+    info.update(rounds=rounds, seconds=time.perf_counter() - t0)
+    return out, w.parent.copy(), info
+
+
+def _round(w: _Work, signature: tuple, bound: float, rng, moved: np.ndarray) -> np.ndarray:
+    """One round of the module docstring's steps 1-3; returns ``moved`` (N,) bool updated
+    with the vertices smoothed in it."""
+    cfg = w.cfg
+    # Boundary changes first: an interior flip under a flattened cap would otherwise bury it
+    # under tets that no surface operation can reach.
+    if cfg.max_boundary_ring > 0 and bound > 0:
+        for _ in range(cfg.max_flip_passes):
+            if _boundary_pass(w, signature, bound) == 0:
+                break
+    for _ in range(cfg.max_flip_passes):
+        if _interior_flip_pass(w) == 0:
+            break
+    now = _smooth(w, _tangent_projectors(w.mesh(), cfg.feature_ratio), cfg.smooth_budget_share * bound, rng,
+                  cfg.smooth_passes)
+    for _ in range(cfg.max_flip_passes):
+        if _interior_flip_pass(w) == 0:
+            break
+    out = np.zeros(len(w.V), dtype=bool)
+    out[: len(moved)] = moved
+    out[: len(now)] |= now
+    return out
+
+
+def _report(w: _Work, mesh: TetMesh, out: TetMesh, before: dict, L: float, signature: tuple, smoothed: int) -> dict:
+    """The ``report.json -> improve`` section (see :func:`improve`)."""
+    cfg = w.cfg
     va, fa = mesh.surface_mesh()
     vb, fb = out.surface_mesh()
-    hd = surface_hausdorff(va, fa, vb, fb, samples_per_face=cfg.hausdorff_samples_per_face, device=device)
-    info = {
+    hd = surface_hausdorff(va, fa, vb, fb, samples_per_face=cfg.hausdorff_samples_per_face, device=w.device)
+    return {
         "flips": dict(w.counts),
         "splits": dict(w.splits),
-        "vertices_smoothed": int(moved_any.sum()),
+        "vertices_smoothed": smoothed,
         "before": before,
-        "after": after,
+        "after": _summary(w.V, w.T, w.quality()),
         "eta_histogram_before": _eta_histogram(mesh.vertices, mesh.tets, cfg.eta_histogram_edges),
         "eta_histogram_after": _eta_histogram(out.vertices, out.tets, cfg.eta_histogram_edges),
         "mean_boundary_edge": L,
@@ -1212,9 +1212,6 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
         "surface_move_bound_mean_edges": cfg.max_surface_move,
         "topology": {"components": signature[0], "genus": signature[1], "boundary_shells": signature[2],
                      "manifold": signature[3]},
-        "rounds": rounds,
         "quality_measure": cfg.quality,
-        "device": device,
-        "seconds": time.perf_counter() - t0,
+        "device": w.device,
     }
-    return out, w.parent.copy(), info
