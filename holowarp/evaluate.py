@@ -19,11 +19,14 @@ __all__ = ["main", "build_parser", "format_table"]
 
 _ROWS = [
     ("chamfer_l1", "Chamfer-L1", "lower is better"),
+    ("chamfer_l1_floor", "Chamfer-L1 floor", "GT against itself: a perfect score"),
+    ("concave_chamfer", "concave Chamfer", "GT regions silhouettes cannot see; nan if convex"),
     ("chamfer_l2", "Chamfer-L2", "lower is better"),
     ("hausdorff", "Hausdorff", "lower is better"),
     ("precision", "precision @0.01", ""),
     ("recall", "recall @0.01", ""),
     ("f_score", "F-score @0.01", ""),
+    ("f_score_005", "F-score @0.005", ""),
     ("normal_consistency", "normal consistency", ""),
     ("volume_iou", "volume IoU", ""),
     ("edge_precision", "edge precision @0.005", "NMC edge samples"),
@@ -84,6 +87,8 @@ def build_parser():
     p.add_argument("--res", type=int, default=None, metavar="PX", help="load the dataset at this resolution (longer side)")
     p.add_argument("--json", metavar="OUT", help="write the metrics JSON here (atomically)")
     p.add_argument("--details", metavar="OUT", help="also write non-contract details (timings, LPIPS note, counts)")
+    p.add_argument("--error-map", metavar="DIR",
+                   help="write pred_error.ply, gt_missing.ply and error_views.png (distances on a fixed colour scale)")
     p.add_argument("--samples", type=int, default=100_000, metavar="N", help="surface samples per mesh (default 100000, >= 1)")
     p.add_argument("--volume-points", type=int, default=100_000, metavar="N",
                    help="uniform points for volume IoU (default 100000, >= 1)")
@@ -106,6 +111,10 @@ def _run(args) -> int:
     for flag, path in (("--json", args.json), ("--details", args.details)):
         if path is not None:
             check_output_file(path, what=flag)
+    if args.error_map is not None:
+        from holowarp.fileio import check_output_dir
+
+        check_output_dir(args.error_map, what="--error-map")
     if args.volume_points < 1:
         cli.fail(f"--volume-points must be >= 1, got {args.volume_points}")
     dataset = None
@@ -128,6 +137,13 @@ def _run(args) -> int:
         print(f"wrote {args.json}")
     if args.details:
         atomic_write_json(args.details, info)
+    if args.error_map:
+        from holowarp.metrics.evaluate import evaluation_surfaces
+        from holowarp.previews import ERROR_CMAP, ERROR_SCALE, write_error_maps
+
+        maps = write_error_maps(args.error_map, *evaluation_surfaces(args.pred, gt), device=args.device)
+        print(f"wrote error maps to {args.error_map} (colour scale {ERROR_CMAP}: 0 dark .. {ERROR_SCALE} bright, "
+              "evaluation units; the object's largest side is 1)")
     return 0
 
 

@@ -4,7 +4,9 @@
   each panel labelled (what it is, the view, its PSNR);
 - :func:`preview_cutaway`: the tets on one side of a mid plane, coloured by face-connected
   component (pyvista, off screen);
-- :func:`preview_losses`: the loss curves of every stage (log scale) from ``history.jsonl``.
+- :func:`preview_losses`: the loss curves of every stage (log scale) from ``history.jsonl``;
+- :func:`write_error_maps`: a prediction and its ground truth coloured by their distances
+  on a fixed scale (``pred_error.ply``, ``gt_missing.ply``, ``error_views.png``).
 
 Every file is written atomically; small renders are upscaled (nearest) so pixels stay visible.
 """
@@ -18,7 +20,16 @@ import numpy as np
 from holowarp.fileio import atomic_path
 from holowarp.tetmesh import TetMesh
 
-__all__ = ["preview_test_views", "preview_cutaway", "preview_losses", "labelled"]
+__all__ = [
+    "ERROR_SCALE",
+    "ERROR_CMAP",
+    "preview_test_views",
+    "preview_cutaway",
+    "preview_losses",
+    "labelled",
+    "error_colors",
+    "write_error_maps",
+]
 
 #: Previews are upscaled to at least this many pixels of height.
 MIN_HEIGHT = 384
@@ -149,4 +160,78 @@ def preview_losses(path: Path, history: dict) -> str:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
+    return str(path)
+
+
+#: Fixed colour scale of the error maps, evaluation-frame units (object bbox largest side 1):
+#: 0 is dark, ERROR_SCALE and beyond the brightest colour of the map.
+ERROR_SCALE = 0.02
+ERROR_CMAP = "inferno"
+
+
+def error_colors(distances) -> np.ndarray:
+    """(N, 3) uint8 colours of distances on the fixed scale [0, :data:`ERROR_SCALE`]."""
+    from matplotlib import colormaps
+
+    t = np.clip(np.asarray(distances, dtype=np.float64) / ERROR_SCALE, 0.0, 1.0)
+    return (colormaps[ERROR_CMAP](t)[:, :3] * 255 + 0.5).astype(np.uint8)
+
+
+def write_error_maps(out_dir, pred, gt, *, device: str = "cpu", title: str = "") -> dict:
+    """The error maps of a prediction against a ground truth, in the evaluation frame:
+
+    - ``pred_error.ply``: the predicted surface, each vertex coloured by its distance to GT;
+    - ``gt_missing.ply``: GT, each vertex coloured by its distance to the prediction (what is
+      missing);
+    - ``error_views.png``: both, from four views, with the colour bar.
+
+    ``pred`` and ``gt`` are ``(vertices (V, 3), faces (F, 3))`` pairs already in the
+    evaluation frame. Distances are exact point-to-surface distances
+    (:func:`holowarp.ops.closest.closest_distance`); the colour scale is fixed
+    (:data:`ERROR_SCALE`), so maps of different runs compare by eye.
+
+    Returns the paths and per-side distance statistics (mean, 95th percentile, max).
+    """
+    from holowarp.ops.closest import closest_distance
+    from holowarp.surface_io import write_surface
+
+    out = Path(out_dir)
+    (pV, pF), (gV, gF) = pred, gt
+    d_pred = closest_distance(gV, gF, pV, device=device)
+    d_gt = closest_distance(pV, pF, gV, device=device)
+    paths = {
+        "pred_error": str(write_surface(out / "pred_error.ply", (pV, pF), colors=error_colors(d_pred),
+                                        header=f"prediction coloured by distance to GT, {ERROR_CMAP} 0..{ERROR_SCALE}")),
+        "gt_missing": str(write_surface(out / "gt_missing.ply", (gV, gF), colors=error_colors(d_gt),
+                                        header=f"GT coloured by distance to the prediction, {ERROR_CMAP} 0..{ERROR_SCALE}")),
+    }
+    paths["error_views"] = _error_views(out / "error_views.png", (pV, pF, d_pred), (gV, gF, d_gt), title)
+    stats = {name: {"mean": float(d.mean()), "p95": float(np.percentile(d, 95)), "max": float(d.max())}
+             for name, d in (("pred_to_gt", d_pred), ("gt_to_pred", d_gt))}
+    return {"paths": paths, "distances": stats, "scale": [0.0, ERROR_SCALE], "colormap": ERROR_CMAP}
+
+
+def _error_views(path: Path, pred, gt, title: str) -> str:
+    """Two rows (prediction error, GT missing) by four views, off screen."""
+    import pyvista as pv
+
+    from holowarp.viz import offscreen_plotter
+
+    pl = offscreen_plotter((1600, 820), shape=(2, 4), border=False)
+    views = [(1, -1, 0.6), (-1, -1, 0.6), (-1, 1, -0.4), (1, 1, 0.9)]
+    for row, ((V, F, d), label) in enumerate(((pred, "prediction: distance to GT"), (gt, "GT: distance to prediction"))):
+        poly = pv.PolyData(np.asarray(V, np.float64), np.hstack([np.full((len(F), 1), 3), F]).ravel())
+        poly.point_data["distance"] = np.asarray(d, np.float64)
+        for col, eye in enumerate(views):
+            pl.subplot(row, col)
+            pl.add_mesh(poly.copy(), scalars="distance", cmap=ERROR_CMAP, clim=(0.0, ERROR_SCALE), smooth_shading=True,
+                        show_scalar_bar=(col == 3), scalar_bar_args={"title": "distance", "fmt": "%.3f", "n_labels": 3})
+            if col == 0:
+                pl.add_text(label + (f" ({title})" if title else ""), font_size=9)
+            c = 0.5 * (np.asarray(V).min(0) + np.asarray(V).max(0))
+            pl.camera_position = [tuple(c + 2.2 * np.array(eye) / np.linalg.norm(eye)), tuple(c), (0, 0, 1)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        pl.screenshot(str(tmp))
+    pl.close()
     return str(path)

@@ -135,9 +135,13 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
     metrics = None
     if dataset.gt_mesh is not None and Path(dataset.gt_mesh).is_file():
         from holowarp.metrics import evaluate_mesh
+        from holowarp.metrics.evaluate import evaluation_surfaces
+        from holowarp.previews import write_error_maps
 
         t0 = time.perf_counter()
         metrics = evaluate_mesh(clean, dataset.gt_mesh, dataset=dataset, device=str(device))
+        previews["error_maps"] = write_error_maps(prev, *evaluation_surfaces(clean, dataset.gt_mesh),
+                                                  device=str(device))["paths"]
         state.add_time("evaluate", time.perf_counter() - t0, 0)
     return build_report(config=config, device=device, data_dir=data_dir, dataset=dataset, state=state, clean=clean,
                         cleanup_info=cinfo, psnr=psnr, ssim=ssim, outputs=outputs, previews=previews, metrics=metrics)

@@ -344,7 +344,7 @@ def read_surface(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return m.positions, m.faces
 
 
-def write_surface(path: str | os.PathLike, surface, *, header: str | None = None) -> Path:
+def write_surface(path: str | os.PathLike, surface, *, header: str | None = None, colors=None) -> Path:
     """Write a triangle surface as ``.obj`` or binary ``.ply``, atomically.
 
     Args:
@@ -352,6 +352,8 @@ def write_surface(path: str | os.PathLike, surface, *, header: str | None = None
             boundary, vertices compacted) or a ``(vertices (V, 3), faces (F, 3))`` pair.
         header: comment written at the top of the file (each line prefixed); default: what
             the surface is.
+        colors: optional (V, 3) RGB per vertex, floats in [0, 1] or uint8 (``.ply`` only:
+            ``red green blue`` uchar properties, which every mesh viewer shows).
     """
     path = Path(path)
     ext = path.suffix.lower()
@@ -364,6 +366,14 @@ def write_surface(path: str | os.PathLike, surface, *, header: str | None = None
     V = np.asarray(V, dtype=np.float64)
     F = np.asarray(F, dtype=np.int64)
     comments = [line for line in header.splitlines() if line.strip()]
+    rgb = None
+    if colors is not None:
+        if ext != ".ply":
+            raise SurfaceError(f"{path}: vertex colours need a .ply output")
+        rgb = np.asarray(colors)
+        rgb = rgb if rgb.dtype == np.uint8 else np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
+        if rgb.shape != (len(V), 3):
+            raise SurfaceError(f"{path}: colors must be ({len(V)}, 3), got {rgb.shape}")
     with atomic_path(path) as tmp:
         if ext == ".obj":
             with open(tmp, "w", encoding="utf-8") as f:
@@ -373,16 +383,22 @@ def write_surface(path: str | os.PathLike, surface, *, header: str | None = None
                 np.savetxt(f, F + 1, fmt="f %d %d %d")
         else:
             head = "".join(f"comment {line}\n" for line in comments)
+            props = "property uchar red\nproperty uchar green\nproperty uchar blue\n" if rgb is not None else ""
             text = (
                 f"ply\nformat binary_little_endian 1.0\n{head}"
-                f"element vertex {len(V)}\nproperty float x\nproperty float y\nproperty float z\n"
+                f"element vertex {len(V)}\nproperty float x\nproperty float y\nproperty float z\n{props}"
                 f"element face {len(F)}\nproperty list uchar int vertex_indices\nend_header\n"
             )
+            vt = [("p", "<f4", (3,))] + ([("c", "u1", (3,))] if rgb is not None else [])
+            vr = np.empty(len(V), dtype=vt)
+            vr["p"] = V
+            if rgb is not None:
+                vr["c"] = rgb
             fr = np.empty(len(F), dtype=[("n", "u1"), ("i", "<i4", (3,))])
             fr["n"] = 3
             fr["i"] = F
             with open(tmp, "wb") as f:
                 f.write(text.encode("utf-8"))
-                f.write(V.astype("<f4").tobytes())
+                f.write(vr.tobytes())
                 f.write(fr.tobytes())
     return path

@@ -27,12 +27,12 @@ LAYERS = [
     ("io", ["holowarp.surface_io", "holowarp.mesh_io", "holowarp.usd"]),
     ("domain", ["holowarp.data", "holowarp.render_gt", "holowarp.carve", "holowarp.metrics", "holowarp.manifold",
                 "holowarp.gaussians", "holowarp.tetgs", "holowarp.energies", "holowarp.losses", "holowarp.optim",
-                "holowarp.viz", "holowarp.previews"]),
+                "holowarp.viz", "holowarp.previews", "holowarp.shapes"]),
     ("stages", ["holowarp.stages"]),
     ("applications", ["holowarp.runstate", "holowarp.report", "holowarp.preflight", "holowarp.pipeline",
                       "holowarp.synthesis", "holowarp.simulation", "holowarp.baselines"]),
     ("commands", ["holowarp.cli", "holowarp.reconstruct", "holowarp.simulate", "holowarp.synth", "holowarp.evaluate",
-                  "holowarp.convert", "holowarp.gs2d", "holowarp.improve", "holowarp.bench",
+                  "holowarp.convert", "holowarp.gs2d", "holowarp.improve", "holowarp.bench", "holowarp.poses",
                   "holowarp.baselines.visual_hull"]),
     ("api", ["holowarp"]),  # the package root: lazy re-exports of the public entry points
 ]

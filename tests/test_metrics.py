@@ -12,6 +12,7 @@ import pytest
 
 from holowarp.frame import FrameError, unit_cube_transform
 from holowarp.metrics import METRIC_KEYS, evaluate_mesh
+from holowarp.metrics.evaluate import TET_KEYS
 from holowarp.metrics.image import mask_psnr, psnr
 from holowarp.metrics.surface import chamfer_metrics, edge_metrics, edge_sample_mask, sample_surface
 from holowarp.metrics.volume import inside_mask
@@ -57,7 +58,7 @@ def test_concentric_spheres_give_chamfer_equal_to_the_radius_gap(rng):
     assert m["precision"] == 0 and m["recall"] == 0 and m["f_score"] == 0
     assert m["normal_consistency"] > 0.999
     assert m["volume_iou"] == pytest.approx(0.9**3, abs=0.01)
-    assert all(m[k] is None for k in METRIC_KEYS[11:])  # a surface has no tets
+    assert all(m[k] is None for k in TET_KEYS)  # a surface has no tets
 
 
 def test_shifted_sphere_gives_the_known_chamfer_and_lens_iou(rng):
@@ -235,3 +236,76 @@ def test_evaluate_with_dataset_adds_silhouette_psnr(tmp_path):
     assert m1["psnr_mask"] > 40 and m2["psnr_mask"] < 20
     # 5000 samples on a unit cube: the chamfer floor is the sample spacing (~0.017).
     assert m1["chamfer_l1"] < 0.025 < m2["chamfer_l1"] and m1["volume_iou"] > 0.99
+
+
+def test_concave_mask_is_the_distance_inside_a_convex_hull(rng):
+    from holowarp.metrics.surface import concave_mask
+
+    # Inside the unit cube the distance to the hull boundary is the distance to the nearest face.
+    cube = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    pts = rng.uniform(-0.2, 1.2, (5000, 3))
+    d = np.min(np.concatenate([pts, 1 - pts], axis=1), axis=1)  # negative outside
+    np.testing.assert_array_equal(concave_mask(pts, cube, margin=0.1), d > 0.1)
+
+
+def test_chamfer_floor_is_sampling_noise_and_shrinks_with_more_samples(rng):
+    from holowarp.metrics.surface import chamfer_floor
+
+    V, F = _sphere(0.5)
+    coarse = chamfer_floor(V, F, 2_000, rng=rng)
+    fine = chamfer_floor(V, F, 50_000, rng=rng)
+    # Nearest-sample distances scale like the sample spacing ~ sqrt(area / n).
+    assert 0 < fine < coarse
+    assert fine / coarse == pytest.approx(np.sqrt(2_000 / 50_000), rel=0.25)
+
+
+def test_fine_f_score_and_concave_chamfer_see_a_filled_bowl(rng):
+    """A hemispherical bowl against its convex hull (what silhouettes give): the concave
+    Chamfer is about the depth of the missing cavity, the fine F-score drops."""
+    import trimesh
+
+    from holowarp.metrics.surface import concave_mask
+    from holowarp.shapes import shape_surface
+
+    V, F = shape_surface("bowl", resolution=64, max_faces=None)
+    h = trimesh.convex.convex_hull(V)
+    gt, gn, _ = sample_surface(V, F, 100_000, rng=rng)
+    concave = concave_mask(gt, V)
+    scores = {}
+    for name, (pv, pf) in {"self": (V, F), "hull": (np.asarray(h.vertices), np.asarray(h.faces))}.items():
+        pp, pn, _ = sample_surface(pv, pf, 100_000, rng=rng)
+        d: dict = {}
+        m = chamfer_metrics(pp, pn, gt, gn, distances=d)
+        scores[name] = (m["f_score_005"], float(d["gt_to_pred"][concave].mean()))
+    assert concave.mean() > 0.3  # the inside of the bowl
+    assert scores["self"][1] < 0.005 < 0.05 < scores["hull"][1]  # the hull misses the cavity's depth
+    assert scores["self"][0] > 0.9 and scores["hull"][0] < scores["self"][0] - 0.2
+
+
+def test_error_maps_colour_both_surfaces_on_the_fixed_scale(tmp_path):
+    import trimesh
+
+    from holowarp.previews import ERROR_SCALE, write_error_maps
+
+    big, small = _sphere(0.5), _sphere(0.49)
+    out = write_error_maps(tmp_path, small, big)
+    for name in ("pred_error.ply", "gt_missing.ply", "error_views.png"):
+        assert (tmp_path / name).is_file()
+    assert out["distances"]["pred_to_gt"]["mean"] == pytest.approx(0.01, abs=1e-3)
+    ply = trimesh.load(tmp_path / "pred_error.ply", process=False)
+    colors = np.asarray(ply.visual.vertex_colors)[:, :3]
+    assert len(np.unique(colors, axis=0)) <= 4  # one distance everywhere: one colour (up to float32)
+    assert out["scale"] == [0.0, ERROR_SCALE]
+
+
+def test_closest_distance_kernel_matches_trimesh_on_random_points(rng):
+    import trimesh
+
+    from holowarp.ops.closest import closest_distance
+
+    s = trimesh.creation.icosphere(subdivisions=2, radius=0.4)
+    V = np.asarray(s.vertices) + rng.normal(scale=0.02, size=s.vertices.shape)  # not a sphere any more
+    m = trimesh.Trimesh(V, s.faces, process=False)
+    pts = rng.uniform(-0.8, 0.8, (2000, 3))
+    _, ref, _ = trimesh.proximity.closest_point(m, pts)
+    np.testing.assert_allclose(closest_distance(V, s.faces, pts), ref, atol=2e-6)

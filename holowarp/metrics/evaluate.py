@@ -5,7 +5,11 @@ when a dataset is given):
 
 - surface (evaluation frame, 100k area-weighted samples per surface): ``chamfer_l1``,
   ``chamfer_l2``, ``hausdorff``, ``precision``, ``recall``, ``f_score`` (tau = 0.01),
-  ``normal_consistency``, ``edge_precision``, ``edge_recall``, ``edge_f1``;
+  ``normal_consistency``, ``edge_precision``, ``edge_recall``, ``edge_f1``, ``f_score_005``
+  (tau = 0.005), ``chamfer_l1_floor`` (GT against itself at the same sample count: what a
+  perfect prediction scores) and ``concave_chamfer`` (the mean distance to the prediction of
+  the GT samples deeper than 0.01 inside the GT's convex hull, where silhouettes are blind;
+  NaN for a convex GT);
 - volume: ``volume_iou`` (winding-number inside test on 100k uniform points);
 - topology of the prediction: ``components`` (face-connected tet components), ``manifold``
   (boundary edge- and vertex-manifold), ``genus`` (of the boundary), ``tets``;
@@ -40,10 +44,17 @@ import numpy as np
 from holowarp.errors import InputError
 from holowarp.frame import FrameError, unit_cube_transform
 from holowarp.metrics.image import lpips_status, mask_psnr
-from holowarp.metrics.surface import SurfaceMetricSettings, chamfer_metrics, edge_metrics, sample_surface
+from holowarp.metrics.surface import (
+    SurfaceMetricSettings,
+    chamfer_floor,
+    chamfer_metrics,
+    concave_mask,
+    edge_metrics,
+    sample_surface,
+)
 from holowarp.metrics.volume import volume_iou
 
-__all__ = ["METRIC_KEYS", "EvaluationError", "evaluate_mesh", "load_surface"]
+__all__ = ["METRIC_KEYS", "TET_KEYS", "EvaluationError", "evaluate_mesh", "evaluation_surfaces", "load_surface"]
 
 #: The top-level keys of the evaluation JSON, in order (the issue's contract).
 METRIC_KEYS = (
@@ -66,7 +77,13 @@ METRIC_KEYS = (
     "min_dihedral_mean",
     "min_dihedral_worst",
     "aspect_ratio_mean",
+    "f_score_005",
+    "chamfer_l1_floor",
+    "concave_chamfer",
 )
+#: The keys that describe the prediction's tets (``None`` for a surface prediction).
+TET_KEYS = ("components", "manifold", "genus", "tets", "inverted_ratio", "min_dihedral_mean", "min_dihedral_worst",
+            "aspect_ratio_mean")
 
 
 class EvaluationError(InputError):
@@ -111,10 +128,20 @@ def _as_surface(x, what: str):
     raise EvaluationError(f"{what}: expected a path, a TetMesh or a (vertices, faces) pair, got {type(x).__name__}")
 
 
+def evaluation_surfaces(pred, gt):
+    """``((pred_vertices, pred_faces), (gt_vertices, gt_faces))`` in the evaluation frame
+    (the GT's bounding box centred at the origin, largest side 1), from anything
+    :func:`evaluate_mesh` accepts."""
+    pV, pF, _ = _as_surface(pred, "prediction")
+    gV, gF, _ = _as_surface(gt, "ground truth")
+    s, t = unit_cube_transform(gV)
+    return (pV * s + t, np.asarray(pF)), (gV * s + t, np.asarray(gF))
+
+
 def _tet_keys(ptm) -> dict:
     """The topology and tet-quality keys of the prediction (``None`` for a surface)."""
     if ptm is None:
-        return {k: None for k in METRIC_KEYS[11:]}
+        return {k: None for k in TET_KEYS}
     q = ptm.quality_summary()
     oriented = ptm.oriented()[0]
     return {
@@ -142,11 +169,16 @@ def _surface_keys(pVn, pF, gVn, gF, *, num_samples: int, rng, volume_points: int
     st = SurfaceMetricSettings()
     trees = (cKDTree(pp), cKDTree(gp))
     t1 = time.perf_counter()
-    out = chamfer_metrics(pp, pn, gp, gn, tau=st.tau, trees=trees)
+    dist: dict = {}
+    out = chamfer_metrics(pp, pn, gp, gn, tau=st.tau, tau_fine=st.tau_fine, trees=trees, distances=dist)
+    concave = concave_mask(gp, gVn, margin=st.concave_margin)
+    out["concave_chamfer"] = float(dist["gt_to_pred"][concave].mean()) if concave.any() else float("nan")
     t2 = time.perf_counter()
     em = edge_metrics(pp, pn, gp, gn, radius=st.edge_radius, cos_threshold=st.edge_cos, tau=st.edge_tau, trees=trees)
     t3 = time.perf_counter()
     out["volume_iou"] = volume_iou(pVn, pF, gVn, gF, num_points=volume_points, rng=rng, device=device)
+    # Drawn after everything else from the same generator, so the other metrics keep their samples.
+    out["chamfer_l1_floor"] = chamfer_floor(gVn, gF, num_samples, rng=rng)
     timings.update(sampling=t1 - t0, chamfer=t2 - t1, edges=t3 - t2, volume_iou=time.perf_counter() - t3)
     out.update({k: em[k] for k in ("edge_precision", "edge_recall", "edge_f1")})
     return out, em

@@ -9,8 +9,14 @@ Euclidean distances ``d``.
 - Chamfer-L2 = 0.5 (mean d^2(pred->gt) + mean d^2(gt->pred));
 - Hausdorff = max of the two one-sided maxima;
 - precision = fraction of pred samples within ``tau`` of the gt samples, recall the
-  converse, F-score their harmonic mean (tau = 0.01);
+  converse, F-score their harmonic mean (tau = 0.01; ``f_score_005`` at tau = 0.005, where
+  staircases and pits of a coarse surface show);
 - normal consistency = 0.5 (mean |n_pred . n_nearest gt| + mean |n_gt . n_nearest pred|);
+- the Chamfer floor: Chamfer-L1 of the ground truth against itself (two independent sample
+  sets of the same size), the value a perfect prediction would get (:func:`chamfer_floor`);
+- concave Chamfer: the mean distance to the prediction of the GT samples that lie deeper
+  than ``concave_margin`` (0.01) inside the GT's convex hull, the regions no silhouette sees
+  (:func:`concave_mask`);
 - edge metrics (Neural Marching Cubes): a sample is an edge sample when some other sample
   of the same surface within 0.004 has |n . n'| < 0.2; edge precision/recall/F1 are the
   precision/recall/F-score at tau = 0.005 computed on edge samples only. Precision is NaN
@@ -30,6 +36,8 @@ __all__ = [
     "sample_surface",
     "nearest",
     "chamfer_metrics",
+    "chamfer_floor",
+    "concave_mask",
     "edge_sample_mask",
     "edge_metrics",
 ]
@@ -41,6 +49,8 @@ class SurfaceMetricSettings:
 
     num_samples: int = 100_000
     tau: float = 0.01
+    tau_fine: float = 0.005
+    concave_margin: float = 0.01
     edge_radius: float = 0.004
     edge_cos: float = 0.2
     edge_tau: float = 0.005
@@ -104,13 +114,17 @@ def _prf(d_p2g, d_g2p, tau):
     return prec, rec, f
 
 
-def chamfer_metrics(pred_pts, pred_n, gt_pts, gt_n, *, tau: float = 0.01, trees=None) -> dict:
-    """Chamfer-L1/L2, Hausdorff, precision/recall/F-score at ``tau``, normal consistency.
+def chamfer_metrics(pred_pts, pred_n, gt_pts, gt_n, *, tau: float = 0.01, tau_fine: float = 0.005, trees=None,
+                    distances: dict | None = None) -> dict:
+    """Chamfer-L1/L2, Hausdorff, precision/recall/F-score at ``tau`` and ``tau_fine``,
+    normal consistency.
 
     Args:
         pred_pts, gt_pts: (P, 3), (G, 3) samples.
         pred_n, gt_n: their unit normals.
         trees: optional pre-built ``(pred_tree, gt_tree)``.
+        distances: if given, receives the one-sided distances ``"pred_to_gt"`` (P,) and
+            ``"gt_to_pred"`` (G,).
     """
     from scipy.spatial import cKDTree
 
@@ -118,6 +132,9 @@ def chamfer_metrics(pred_pts, pred_n, gt_pts, gt_n, *, tau: float = 0.01, trees=
     d_p2g, i_p2g = nearest(pred_pts, None, tree=tg)
     d_g2p, i_g2p = nearest(gt_pts, None, tree=tp)
     prec, rec, f = _prf(d_p2g, d_g2p, tau)
+    f_fine = _prf(d_p2g, d_g2p, tau_fine)[2]
+    if distances is not None:
+        distances.update(pred_to_gt=d_p2g, gt_to_pred=d_g2p)
     nc_p = np.abs(np.einsum("ij,ij->i", pred_n, gt_n[i_p2g])).mean()
     nc_g = np.abs(np.einsum("ij,ij->i", gt_n, pred_n[i_g2p])).mean()
     return {
@@ -128,7 +145,37 @@ def chamfer_metrics(pred_pts, pred_n, gt_pts, gt_n, *, tau: float = 0.01, trees=
         "recall": rec,
         "f_score": f,
         "normal_consistency": float(0.5 * (nc_p + nc_g)),
+        "f_score_005": f_fine,
     }
+
+
+def chamfer_floor(vertices, faces, num: int, *, rng) -> float:
+    """Chamfer-L1 between two independent ``num``-sample sets of the same surface: the score
+    of a perfect prediction at this sample count (sampling noise, not error)."""
+    a, _, _ = sample_surface(vertices, faces, num, rng=rng)
+    b, _, _ = sample_surface(vertices, faces, num, rng=rng)
+    d_ab, _ = nearest(a, b)
+    d_ba, _ = nearest(b, a)
+    return float(0.5 * (d_ab.mean() + d_ba.mean()))
+
+
+def concave_mask(points, hull_points, *, margin: float = 0.01, device: str = "cpu") -> np.ndarray:
+    """(P,) bool: ``points`` inside the convex hull of ``hull_points`` and farther than
+    ``margin`` from its boundary (exact distances to the hull's triangles on a BVH,
+    :func:`holowarp.ops.closest.closest_distance`; inside by winding number)."""
+    from scipy.spatial import ConvexHull
+
+    from holowarp.ops.closest import closest_distance
+    from holowarp.ops.winding import winding_inside
+
+    hp = np.asarray(hull_points, dtype=np.float64)
+    hull = ConvexHull(hp)
+    tri = hull.simplices.copy()
+    n = np.cross(hp[tri[:, 1]] - hp[tri[:, 0]], hp[tri[:, 2]] - hp[tri[:, 0]])
+    inward = np.einsum("ij,ij->i", n, hull.equations[:, :3]) < 0  # qhull's facet normals point out
+    tri[inward] = tri[inward][:, [0, 2, 1]]
+    pts = np.asarray(points, dtype=np.float64)
+    return winding_inside(hp, tri, pts, device=device) & (closest_distance(hp, tri, pts, device=device) > margin)
 
 
 def edge_sample_mask(points, normals, *, radius: float = 0.004, cos_threshold: float = 0.2, tree=None) -> np.ndarray:
