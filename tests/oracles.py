@@ -51,3 +51,33 @@ def pixel_rays(viewmat: np.ndarray, K: np.ndarray, width: int, height: int):
     R = viewmat[:3, :3]
     origin = -R.T @ viewmat[:3, 3]
     return origin, d_cam @ R, d_cam[..., 2]
+
+
+def point_triangle_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(P, F) exact distances from points (P, 3) to triangles (F, 3 corners each), float64,
+    by Ericson's Voronoi-region test ("Real-Time Collision Detection", 5.1.5)."""
+    p = points[:, None, :]
+    a, b, c = a[None], b[None], c[None]
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    bp = p - b
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    cp = p - c
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denom = 1.0 / (va + vb + vc)
+        v_in, w_in = vb * denom, vc * denom
+        t_ab = d1 / (d1 - d3)
+        t_ac = d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+    q = a + ab * v_in[..., None] + ac * w_in[..., None]  # inside the face
+    q = np.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[..., None], b + (c - b) * t_bc[..., None], q)
+    q = np.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[..., None], a + ac * t_ac[..., None], q)
+    q = np.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[..., None], a + ab * t_ab[..., None], q)
+    q = np.where(((d6 >= 0) & (d5 <= d6))[..., None], c, q)
+    q = np.where(((d3 >= 0) & (d4 <= d3))[..., None], b, q)
+    q = np.where(((d1 <= 0) & (d2 <= 0))[..., None], a, q)
+    return np.linalg.norm(p - q, axis=-1)
