@@ -151,6 +151,19 @@ def test_loader_resizes_and_writer_round_trips(synth_box, tmp_path):
     assert back.gt_mesh is not None
 
 
+def test_folder_without_test_split_holds_out_every_tenth_training_view(synth_box, tmp_path):
+    _, out, _ = synth_box
+    dst = tmp_path / "ds"
+    shutil.copytree(out, dst)
+    (dst / "transforms_test.json").unlink()  # as the real lego capture
+    ds = load_dataset(dst, res=RES // 2, test_every=4)
+    train_views = [i for i in range(VIEWS) if i % 10]  # the synth split's training views, in order
+    assert ds.num_views == len(train_views) and ds.images.shape[1:3] == (RES // 2, RES // 2)
+    np.testing.assert_array_equal(ds.test_idx, [0, 4, 8])
+    assert ds.meta["held_out"] == {"test_every": 4, "views": [0, 4, 8]}
+    np.testing.assert_array_equal(ds.train_idx, [j for j in range(len(train_views)) if j % 4])
+
+
 def test_nerf_loader_converts_opengl_axes_to_opencv(tmp_path, rng):
     from PIL import Image
 
@@ -219,6 +232,27 @@ def test_neus_fixture_loads_with_matching_projections(tmp_path, rng):
         np.testing.assert_allclose(uv, uv_neus + 0.5, atol=1e-7)
         np.testing.assert_allclose(ds.viewmats[i, :3, :3] @ ds.viewmats[i, :3, :3].T, np.eye(3), atol=1e-10)
         assert np.linalg.det(ds.viewmats[i, :3, :3]) > 0 and (np.diag(ds.K[i]) > 0).all()
+
+
+def test_neus_views_are_resized_as_decoded_keeping_skew_and_aspect(tmp_path, rng):
+    truth = _write_neus(tmp_path / "neus", rng, n=11, h=30, w=44)
+    full = load_neus(tmp_path / "neus")
+    small = load_neus(tmp_path / "neus", res=20, workers=3)
+    assert small.images.shape == (11, 14, 20, 3)  # 44 x 30 -> 20 x 13.6, rounded
+    ref = full.resized(20)  # the area filter applied to the full-resolution stack
+    np.testing.assert_allclose(small.images, ref.images, atol=2e-6)
+    np.testing.assert_allclose(small.masks, ref.masks, atol=2e-6)
+    np.testing.assert_allclose(small.K, ref.K, atol=1e-12)
+    np.testing.assert_array_equal(load_neus(tmp_path / "neus", res=20, workers=1).images, small.images)
+    X = rng.normal(size=(40, 3)) * 0.5
+    for i, (P, S) in enumerate(truth):  # the skewed projection, scaled to the small images
+        Ph = (P @ S)[:3] @ np.hstack([X, np.ones((40, 1))]).T
+        uv_neus = (Ph[:2] / Ph[2]).T + 0.5  # NeuS pixel centres at integers
+        uv, _ = project_points(X, small.viewmats[i], small.K[i])
+        np.testing.assert_allclose(uv, uv_neus * [20 / 44, 14 / 30], atol=1e-7)
+    assert abs(small.K[0, 0, 1]) > 0  # the skew survives the resize
+    with pytest.raises(DatasetError, match="--res must be >= 1"):
+        load_neus(tmp_path / "neus", res=0)
 
 
 def test_decompose_projection_recovers_camera(rng):

@@ -2,8 +2,8 @@
 
 - :class:`holowarp.data.Dataset`: images, masks, intrinsics, world-to-camera matrices,
   optional normal maps, and the train/test split (method.md §1–§2).
-- :func:`holowarp.data.load_dataset`: NeRF-synthetic (``transforms_*.json``) and NeuS/IDR
-  (``cameras_sphere.npz``) folders.
+- :func:`holowarp.data.load_dataset`: NeRF-synthetic (``transforms_*.json``), NeuS/IDR
+  (``cameras_sphere.npz``) and COLMAP (``sparse/0`` + ``images/`` + ``masks/``) folders.
 """
 
 from holowarp.data.dataset import Dataset, DatasetError

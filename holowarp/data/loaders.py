@@ -4,7 +4,9 @@
 
 - NeRF-synthetic / Blender (``transforms_train.json`` [+ ``transforms_test.json``]):
   :mod:`holowarp.data.nerf_synthetic`;
-- NeuS / IDR (``cameras_sphere.npz`` + ``image/`` + ``mask/``): :mod:`holowarp.data.neus`.
+- NeuS / IDR (``cameras_sphere.npz`` + ``image/`` + ``mask/``): :mod:`holowarp.data.neus`;
+- COLMAP (``sparse/0/cameras.bin|txt``, ``images.bin|txt`` + ``images/`` + ``masks/``):
+  :mod:`holowarp.data.colmap` (``python -m holowarp.poses`` writes this layout from photos).
 
 Every problem raises :class:`DatasetError` naming the file and the reason.
 """
@@ -14,6 +16,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from holowarp.data.colmap import find_model, load_colmap, write_colmap
 from holowarp.data.dataset import Dataset, DatasetError
 from holowarp.data.nerf_synthetic import load_nerf_synthetic, write_nerf_synthetic
 from holowarp.data.neus import decompose_projection, load_neus
@@ -24,7 +27,9 @@ __all__ = [
     "load_dataset",
     "load_nerf_synthetic",
     "load_neus",
+    "load_colmap",
     "write_nerf_synthetic",
+    "write_colmap",
     "decompose_projection",
 ]
 
@@ -32,11 +37,14 @@ __all__ = [
 FORMATS = {
     "nerf_synthetic": "transforms_train.json (and transforms_test.json), RGBA images whose alpha is the mask",
     "neus": "cameras_sphere.npz with image/ and mask/ folders (NeuS/IDR, DTU)",
+    "colmap": "a COLMAP model in sparse/0 (cameras.bin|txt, images.bin|txt) with images/ and masks/ folders, "
+              "masks matched to images by file stem",
 }
 
 
 def detect_format(path: str | os.PathLike) -> str:
-    """``"nerf_synthetic"`` or ``"neus"`` for a dataset folder; :class:`DatasetError` otherwise."""
+    """``"nerf_synthetic"``, ``"neus"`` or ``"colmap"`` for a dataset folder; :class:`DatasetError`
+    otherwise."""
     root = Path(path)
     if not root.exists():
         raise DatasetError(f"{root}: no such dataset folder")
@@ -46,6 +54,8 @@ def detect_format(path: str | os.PathLike) -> str:
         return "nerf_synthetic"
     if (root / "cameras_sphere.npz").is_file():
         return "neus"
+    if find_model(root) is not None:
+        return "colmap"
     raise DatasetError(f"{root}: unknown dataset layout (expected " + "; or ".join(FORMATS.values()) + ")")
 
 
@@ -54,10 +64,10 @@ def load_dataset(path: str | os.PathLike, *, res: int | None = None, **kwargs) -
 
     Args:
         path: dataset folder.
-        res: if given, resize so the longer image side is ``res`` pixels (``Dataset.resized``).
-        kwargs: passed to the layout's loader (e.g. ``test_every``).
+        res: if given, the longer image side in pixels: each view is area-resized as it is
+            decoded and ``K`` rescaled (:func:`holowarp.data.dataset.scale_intrinsics`).
+        kwargs: passed to the layout's loader (e.g. ``test_every``, ``workers``).
     """
     fmt = detect_format(path)
-    if fmt == "nerf_synthetic":
-        return load_nerf_synthetic(path, res=res, **kwargs)
-    return load_neus(path, res=res, **kwargs)
+    loader = {"nerf_synthetic": load_nerf_synthetic, "neus": load_neus, "colmap": load_colmap}[fmt]
+    return loader(path, res=res, **kwargs)
