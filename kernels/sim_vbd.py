@@ -7,7 +7,7 @@ One substep of :class:`holowarp.sim.SolverVBDNeoHookean` launches, in order:
    :func:`vbd_component_motion` and :func:`vbd_rigid_guess`: the initial guess, every
    face-connected piece moved rigidly with its mean and angular velocity (plus the part of
    gravity it accelerated with in the last substep: VBD's adaptive initialisation, Chen et
-   al. 2024 §3.5); :func:`vbd_guess_depth`, :func:`vbd_land_components` and
+   al. 2024 §3.5) and a share of each particle's own extrapolation; :func:`vbd_guess_depth`, :func:`vbd_land_components` and
    :func:`vbd_apply_shift`: pieces that would enter the ground or a plate land on it
    rigidly; :func:`vbd_guess_project`: particles still behind one are pushed out.
 2. Only when bodies can touch: :func:`vbd_triangle_bounds` (swept boxes of the surface
@@ -199,6 +199,20 @@ def _surface_point(surf: SurfaceData, s: int, alpha: float):
 
 
 @wp.func
+def _gap(qs: wp.array(dtype=wp.vec3), dq: wp.array(dtype=wp.vec3), v: int, ja: int, jb: int, jc: int, w: wp.vec3):
+    """x_v - (w_a x_a + w_b x_b + w_c x_c) with x = qs + dq, the start positions and the
+    (small) displacements differenced apart so float32 keeps the displacements' digits."""
+    return (qs[v] - (qs[ja] * w[0] + qs[jb] * w[1] + qs[jc] * w[2])) + (dq[v] - (dq[ja] * w[0] + dq[jb] * w[1]
+                                                                                + dq[jc] * w[2]))
+
+
+@wp.func
+def _slip(dq: wp.array(dtype=wp.vec3), v: int, ja: int, jb: int, jc: int, w: wp.vec3):
+    """The vertex's displacement over the substep relative to the triangle point's."""
+    return dq[v] - (dq[ja] * w[0] + dq[jb] * w[1] + dq[jc] * w[2])
+
+
+@wp.func
 def closest_point_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
     """Barycentric weights (wa, wb, wc) of the point of triangle abc closest to p
     (Ericson, Real-Time Collision Detection, 5.1.5)."""
@@ -261,7 +275,7 @@ def vbd_predict(
     surf: SurfaceData,
     q_start: wp.array(dtype=wp.vec3),  # [N]
     qd_start: wp.array(dtype=wp.vec3),  # [N]
-    inertia: wp.array(dtype=wp.vec3),  # [N] y = x + h v + h^2 g
+    inertia: wp.array(dtype=wp.vec3),  # [N] y - x = h v + h^2 g: the inertial target's displacement
     surf_force: wp.array2d(dtype=wp.vec3),  # [N, S] cleared
     sum_m: wp.array(dtype=float),  # [C] += mass of each component (zeroed first)
     sum_mx: wp.array(dtype=wp.vec3),  # [C] += m x
@@ -276,9 +290,9 @@ def vbd_predict(
     for s in range(surf.count):
         surf_force[i, s] = wp.vec3(0.0)
     if inv_mass[i] == 0.0:
-        inertia[i] = x
+        inertia[i] = wp.vec3(0.0)
     else:
-        inertia[i] = x + (v + gravity * h) * h
+        inertia[i] = (v + gravity * h) * h
     c = particle_component[i]
     m = mass[i]
     wp.atomic_add(sum_m, c, m)
@@ -362,28 +376,33 @@ def vbd_rigid_guess(
     rot: wp.array(dtype=wp.mat33),  # [C]
     gravity: wp.vec3,
     h: float,
-    guess: wp.array(dtype=wp.vec3),  # [N] out
+    beta: float,  # in [0, 1]: how much of each particle's own deformation rate to carry on
+    dq: wp.array(dtype=wp.vec3),  # [N] out: the guess's displacement from q_start
 ):
-    """The initial guess: each free piece moved rigidly over the substep. Extrapolating
-    every particle with its own velocity instead carries the deformation rate forward,
-    and the elastic energy that 16 sweeps cannot take back out becomes a bounce; a rigid
-    guess leaves the elastic energy where it was (the iterations add only what inertia
-    drives), and in free flight it is the exact answer."""
+    """The initial guess: each free piece moved rigidly over the substep, plus ``beta`` of
+    the particle's own extrapolation beyond that. Extrapolating every particle fully carries
+    the deformation rate forward; when an elastic wave crosses many tets in one substep, the
+    elastic energy that a few sweeps cannot take back out becomes a bounce. The rigid part
+    leaves the elastic energy where it was and is exact in free flight; ``beta`` (the
+    solver's: about one tet crossed per substep) keeps waves alive at small substeps."""
     i = wp.tid()
-    x = q_start[i]
     if inv_mass[i] == 0.0:
-        guess[i] = x
+        dq[i] = wp.vec3(0.0)
         return
     c = particle_component[i]
+    own = (qd_start[i] + _adaptive_gravity(qdd_in[i], gravity) * h) * h
     if component_free[c] != 0:
-        guess[i] = com[c] + rot[c] * (x - com[c]) + disp[c]
+        r = q_start[i] - com[c]
+        rigid = rot[c] * r - r + disp[c]
+        dq[i] = rigid + (own - rigid) * beta
     else:
-        guess[i] = x + (qd_start[i] + _adaptive_gravity(qdd_in[i], gravity) * h) * h
+        dq[i] = own
 
 
 @wp.kernel
 def vbd_guess_depth(
-    guess: wp.array(dtype=wp.vec3),  # [N]
+    q_start: wp.array(dtype=wp.vec3),  # [N]
+    dq: wp.array(dtype=wp.vec3),  # [N] the guess's displacement
     particle_component: wp.array(dtype=wp.int32),  # [N]
     surf: SurfaceData,
     depth: wp.array2d(dtype=float),  # [C, S] max over the piece of the depth behind surface s
@@ -393,7 +412,8 @@ def vbd_guess_depth(
     i = wp.tid()
     c = particle_component[i]
     for s in range(surf.count):
-        d = wp.dot(guess[i] - _surface_point(surf, s, surf.alpha1), surf.normal[s])
+        n = surf.normal[s]
+        d = wp.dot(q_start[i] - _surface_point(surf, s, surf.alpha1), n) + wp.dot(dq[i], n)
         wp.atomic_max(depth, c, s, -d)
 
 
@@ -445,7 +465,7 @@ def vbd_land_components(
 
 @wp.kernel
 def vbd_apply_shift(
-    guess: wp.array(dtype=wp.vec3),  # [N] in/out
+    dq: wp.array(dtype=wp.vec3),  # [N] in/out: the guess's displacement
     inv_mass: wp.array(dtype=float),  # [N]
     particle_component: wp.array(dtype=wp.int32),  # [N]
     component_free: wp.array(dtype=wp.int32),  # [C]
@@ -454,7 +474,7 @@ def vbd_apply_shift(
     i = wp.tid()
     c = particle_component[i]
     if inv_mass[i] > 0.0 and component_free[c] != 0:
-        guess[i] = guess[i] + shift[c]
+        dq[i] = dq[i] + shift[c]
 
 
 @wp.kernel
@@ -480,7 +500,8 @@ def vbd_support_levels(
 @wp.kernel
 def vbd_body_landing(
     surface_vertices: wp.array(dtype=wp.int32),  # [Vs]
-    guess: wp.array(dtype=wp.vec3),  # [N]
+    q_start: wp.array(dtype=wp.vec3),  # [N]
+    dq: wp.array(dtype=wp.vec3),  # [N] the guess's displacement
     particle_component: wp.array(dtype=wp.int32),  # [N]
     component_free: wp.array(dtype=wp.int32),  # [C]
     component_mass: wp.array(dtype=float),  # [C] kg
@@ -498,7 +519,6 @@ def vbd_body_landing(
     sideways)."""
     v = surface_vertices[wp.tid()]
     a = particle_component[v]
-    xv = guess[v]
     for s in range(con.slot_count[v]):
         tri = con.slot_tri[v, s]
         b = tri_component[tri]
@@ -508,8 +528,7 @@ def vbd_body_landing(
             w = con.slot_w[v, s]
             n = con.slot_n[v, s]
             u = -d_rel / L
-            p = guess[con.tri[tri, 0]] * w[0] + guess[con.tri[tri, 1]] * w[1] + guess[con.tri[tri, 2]] * w[2]
-            pen = con.radius - wp.dot(xv - p, n)
+            pen = con.radius - wp.dot(_gap(q_start, dq, v, con.tri[tri, 0], con.tri[tri, 1], con.tri[tri, 2], w), n)
             nu = wp.dot(n, u)
             sep = float(0.0)
             if pen > 0.0 and nu > 0.1:
@@ -548,7 +567,8 @@ def vbd_merge_shift(
 
 @wp.kernel
 def vbd_guess_project(
-    guess: wp.array(dtype=wp.vec3),  # [N] in/out
+    q_start: wp.array(dtype=wp.vec3),  # [N]
+    dq: wp.array(dtype=wp.vec3),  # [N] in/out: the guess's displacement
     inv_mass: wp.array(dtype=float),  # [N]
     surf: SurfaceData,
 ):
@@ -556,13 +576,13 @@ def vbd_guess_project(
     i = wp.tid()
     if inv_mass[i] == 0.0:
         return
-    x = guess[i]
+    u = dq[i]
     for s in range(surf.count):
         n = surf.normal[s]
-        d = wp.dot(x - _surface_point(surf, s, surf.alpha1), n)
+        d = wp.dot(q_start[i] - _surface_point(surf, s, surf.alpha1), n) + wp.dot(u, n)
         if d < 0.0:
-            x = x - d * n
-    guess[i] = x
+            u = u - d * n
+    dq[i] = u
 
 
 @wp.func
@@ -580,9 +600,9 @@ def _friction(mu_fn: float, ut: wp.vec3, n: wp.vec3, eps: float):
 def vbd_solve_vertices(
     order: wp.array(dtype=wp.int32),  # [N] vertices sorted by colour
     offset: int,
-    q: wp.array(dtype=wp.vec3),  # [N] in/out
+    dq: wp.array(dtype=wp.vec3),  # [N] in/out: displacements from q_start (the iterate)
     q_start: wp.array(dtype=wp.vec3),  # [N] positions at the substep's start
-    inertia: wp.array(dtype=wp.vec3),  # [N] y
+    inertia: wp.array(dtype=wp.vec3),  # [N] y - q_start
     mass: wp.array(dtype=float),  # [N]
     inv_mass: wp.array(dtype=float),  # [N]
     inv_h2: float,
@@ -591,23 +611,31 @@ def vbd_solve_vertices(
     con: ContactData,
     surf_force: wp.array2d(dtype=wp.vec3),  # [N, S] force of each surface on each vertex, N
 ):
+    """One block step of each vertex of a colour (module docstring). The iterate is the
+    displacement over the substep, so velocities (displacement / h) keep float32's digits
+    at any substep count; positions are start + displacement."""
     i = order[offset + wp.tid()]
     if inv_mass[i] == 0.0:
         return
-    x = q[i]
+    u = dq[i]
     mh = mass[i] * inv_h2
-    f = (inertia[i] - x) * mh  # minus the gradient of G_i, N
+    f = (inertia[i] - u) * mh  # minus the gradient of G_i, N
     H = wp.identity(n=3, dtype=float) * mh
 
-    # ---- elasticity: exact quadratic per tet (module docstring)
+    # ---- elasticity: exact gradient, majoriser curvature (module docstring)
     for a in range(tets.adj_offsets[i], tets.adj_offsets[i + 1]):
         packed = tets.adj[a]
         t = packed >> 2
         k = packed & 3
-        x0 = q[tets.indices[t, 0]]
+        i0 = tets.indices[t, 0]
+        e0 = q_start[i0]
+        d0 = dq[i0]
+        i1 = tets.indices[t, 1]
+        i2 = tets.indices[t, 2]
+        i3 = tets.indices[t, 3]
         Dinv = tets.dm_inv[t]
-        F = wp.matrix_from_cols(q[tets.indices[t, 1]] - x0, q[tets.indices[t, 2]] - x0,
-                                q[tets.indices[t, 3]] - x0) * Dinv
+        F = wp.matrix_from_cols((q_start[i1] - e0) + (dq[i1] - d0), (q_start[i2] - e0) + (dq[i2] - d0),
+                                (q_start[i3] - e0) + (dq[i3] - d0)) * Dinv
         f0 = wp.vec3(F[0, 0], F[1, 0], F[2, 0])
         f1 = wp.vec3(F[0, 1], F[1, 1], F[2, 1])
         f2 = wp.vec3(F[0, 2], F[1, 2], F[2, 2])
@@ -625,7 +653,6 @@ def vbd_solve_vertices(
         ic = wp.dot(f0, f0) + wp.dot(f1, f1) + wp.dot(f2, f2)
         mu_v = tets.mu_v[t]
         lam_v = tets.lam_v[t]
-        # gradient: exact; curvature: the majoriser's (module docstring)
         f = f - (Fb * (mu_v * ic / (ic + 1.0)) + cb * (lam_v * (J - tets.alpha[t])))
         H = H + wp.identity(n=3, dtype=float) * (1.5 * mu_v * wp.dot(b, b)) + wp.outer(cb, cb) * lam_v
 
@@ -639,7 +666,6 @@ def vbd_solve_vertices(
         r0 = con.rev_offsets[i]
         r1 = con.rev_offsets[i + 1]
         if n_own > 0 or r1 > r0:
-            xs = q_start[i]
             # Friction of the contacts active now, with their current normal force
             # (lagged through the move).
             for s in range(n_own):
@@ -649,12 +675,10 @@ def vbd_solve_vertices(
                 jc = con.tri[tri, 2]
                 w = con.slot_w[i, s]
                 n = con.slot_n[i, s]
-                p = q[ja] * w[0] + q[jb] * w[1] + q[jc] * w[2]
-                pen = con.radius - wp.dot(x - p, n)
+                pen = con.radius - wp.dot(_gap(q_start, dq, i, ja, jb, jc, w), n)
                 if pen > 0.0:
-                    u = (x - xs) - ((q[ja] - q_start[ja]) * w[0] + (q[jb] - q_start[jb]) * w[1]
-                                    + (q[jc] - q_start[jc]) * w[2])
-                    ff, Hf = _friction(con.slot_mu[i, s] * con.slot_k[i, s] * pen, u - n * wp.dot(u, n), n,
+                    sl = _slip(dq, i, ja, jb, jc, w)
+                    ff, Hf = _friction(con.slot_mu[i, s] * con.slot_k[i, s] * pen, sl - n * wp.dot(sl, n), n,
                                        con.friction_eps)
                     f = f + ff
                     H = H + Hf
@@ -670,14 +694,11 @@ def vbd_solve_vertices(
                 jc = con.tri[tri, 2]
                 w = con.slot_w[v, s]
                 n = con.slot_n[v, s]
-                xv = q[v]
-                p = q[ja] * w[0] + q[jb] * w[1] + q[jc] * w[2]
-                pen = con.radius - wp.dot(xv - p, n)
+                pen = con.radius - wp.dot(_gap(q_start, dq, v, ja, jb, jc, w), n)
                 if pen > 0.0:
                     wc = w[corner]
-                    u = (xv - q_start[v]) - ((q[ja] - q_start[ja]) * w[0] + (q[jb] - q_start[jb]) * w[1]
-                                             + (q[jc] - q_start[jc]) * w[2])
-                    ff, Hf = _friction(con.slot_mu[v, s] * con.slot_k[v, s] * pen, u - n * wp.dot(u, n), n,
+                    sl = _slip(dq, v, ja, jb, jc, w)
+                    ff, Hf = _friction(con.slot_mu[v, s] * con.slot_k[v, s] * pen, sl - n * wp.dot(sl, n), n,
                                        con.friction_eps)
                     f = f - ff * wc
                     H = H + Hf * (wc * wc)
@@ -691,8 +712,8 @@ def vbd_solve_vertices(
                     tri = con.slot_tri[i, s]
                     w = con.slot_w[i, s]
                     n = con.slot_n[i, s]
-                    p = q[con.tri[tri, 0]] * w[0] + q[con.tri[tri, 1]] * w[1] + q[con.tri[tri, 2]] * w[2]
-                    pen = con.radius - wp.dot(x - p, n)
+                    pen = con.radius - wp.dot(_gap(q_start, dq, i, con.tri[tri, 0], con.tri[tri, 1],
+                                                   con.tri[tri, 2], w), n)
                     if pen - wp.dot(n, dx) > 0.0:
                         kc = con.slot_k[i, s]
                         Hc = Hc + wp.outer(n, n) * kc
@@ -706,8 +727,8 @@ def vbd_solve_vertices(
                     tri = con.slot_tri[v, s]
                     w = con.slot_w[v, s]
                     n = con.slot_n[v, s]
-                    p = q[con.tri[tri, 0]] * w[0] + q[con.tri[tri, 1]] * w[1] + q[con.tri[tri, 2]] * w[2]
-                    pen = con.radius - wp.dot(q[v] - p, n)
+                    pen = con.radius - wp.dot(_gap(q_start, dq, v, con.tri[tri, 0], con.tri[tri, 1],
+                                                   con.tri[tri, 2], w), n)
                     wc = w[corner]
                     if pen + wc * wp.dot(n, dx) > 0.0:
                         kc = con.slot_k[v, s]
@@ -718,39 +739,40 @@ def vbd_solve_vertices(
                 dx = wp.inverse(H) * f
 
     Hinv = wp.inverse(H)
-    x_new = x + Hinv * f
+    u_new = u + Hinv * f
 
     # ---- ground and plates: exact projection in the H metric, Coulomb friction in-block
+    xs = q_start[i]
     for s in range(surf.count):
         n = surf.normal[s]
-        d = wp.dot(x_new - _surface_point(surf, s, surf.alpha1), n)
+        d = wp.dot(xs - _surface_point(surf, s, surf.alpha1), n) + wp.dot(u_new, n)
         force = wp.vec3(0.0)
         if d < 0.0:
             Hn = Hinv * n
             lam = -d / wp.dot(n, Hn)  # normal force, N
-            x_c = x_new + Hn * lam
+            u_c = u_new + Hn * lam
             disp_s = (surf.end[s] - surf.start[s]) * (surf.alpha1 - surf.alpha0)
-            rel = x_c - q_start[i] - disp_s
+            rel = u_c - disp_s
             delta = wp.dot(rel, n) * n - rel  # move that cancels the tangential slip
             h_t = 0.5 * (H[0, 0] + H[1, 1] + H[2, 2] - wp.dot(n, H * n))
             need = h_t * wp.length(delta)
             lim = surf.friction[s] * lam
             ft = wp.vec3(0.0)
             if need <= lim:
-                x_new = x_c + delta  # static: no slip
+                u_new = u_c + delta  # static: no slip
                 ft = delta * h_t
             else:
                 sc = lim / need
-                x_new = x_c + delta * sc  # kinetic: slip shortened by mu f_n / h_t
+                u_new = u_c + delta * sc  # kinetic: slip shortened by mu f_n / h_t
                 ft = delta * (h_t * sc)
             force = n * lam + ft
         surf_force[i, s] = force
-    q[i] = x_new
+    dq[i] = u_new
 
 
 @wp.kernel
 def vbd_finalize(
-    q: wp.array(dtype=wp.vec3),  # [N]
+    dq: wp.array(dtype=wp.vec3),  # [N] the substep's displacements
     q_start: wp.array(dtype=wp.vec3),  # [N]
     qd_start: wp.array(dtype=wp.vec3),  # [N]
     inv_mass: wp.array(dtype=float),  # [N]
@@ -761,17 +783,19 @@ def vbd_finalize(
     bounce_threshold: float,  # m/s: slower approach speeds do not bounce
     damping_factor: float,  # velocity scale per substep, in (0, 1]
     force_scale: float,  # 1 / substeps: mean force over the step
+    q_out: wp.array(dtype=wp.vec3),  # [N] q_start + dq
     qd_out: wp.array(dtype=wp.vec3),  # [N]
     qdd_out: wp.array(dtype=wp.vec3),  # [N]
     surf_total: wp.array(dtype=wp.vec3),  # [S] += mean force of surface s on the bodies, N
 ):
     i = wp.tid()
+    q_out[i] = q_start[i] + dq[i]
     if inv_mass[i] == 0.0:
         qd_out[i] = wp.vec3(0.0)
         qdd_out[i] = wp.vec3(0.0)
         return
     inv_h = 1.0 / h
-    v = (q[i] - q_start[i]) * inv_h
+    v = dq[i] * inv_h
     v0 = qd_start[i]
     for s in range(surf.count):
         fs = surf_force[i, s]
@@ -792,7 +816,7 @@ def vbd_finalize(
 @wp.kernel
 def vbd_triangle_bounds(
     q: wp.array(dtype=wp.vec3),  # [N] substep start
-    guess: wp.array(dtype=wp.vec3),  # [N] initial guess (predicted end)
+    dq: wp.array(dtype=wp.vec3),  # [N] the initial guess's displacement (predicted motion)
     tri: wp.array2d(dtype=wp.int32),  # [T, 3]
     pad: float,  # m
     lowers: wp.array(dtype=wp.vec3),  # [T]
@@ -803,7 +827,7 @@ def vbd_triangle_bounds(
     hi = lo
     for j in range(3):
         a = q[tri[t, j]]
-        b = guess[tri[t, j]]
+        b = a + dq[tri[t, j]]
         lo = wp.min(lo, wp.min(a, b))
         hi = wp.max(hi, wp.max(a, b))
     lowers[t] = lo - wp.vec3(pad)
@@ -873,7 +897,7 @@ def vbd_detect_contacts(
     bvh: wp.uint64,  # triangles' swept boxes
     surface_vertices: wp.array(dtype=wp.int32),  # [Vs]
     q: wp.array(dtype=wp.vec3),  # [N] substep start
-    guess: wp.array(dtype=wp.vec3),  # [N] initial guess
+    dq: wp.array(dtype=wp.vec3),  # [N] the initial guess's displacement
     rest: wp.array(dtype=wp.vec3),  # [N] rest positions (self-collision filter)
     particle_component: wp.array(dtype=wp.int32),  # [N]
     tri: wp.array2d(dtype=wp.int32),  # [T, 3]
@@ -896,7 +920,7 @@ def vbd_detect_contacts(
     v = surface_vertices[wp.tid()]
     x = q[v]
     cv = particle_component[v]
-    query = wp.bvh_query_aabb(bvh, wp.min(x, guess[v]), wp.max(x, guess[v]))
+    query = wp.bvh_query_aabb(bvh, wp.min(x, x + dq[v]), wp.max(x, x + dq[v]))
     t = int(0)
     count = int(0)
     while wp.bvh_query_next(query, t):

@@ -170,6 +170,7 @@ class Model:
 
     Host-side copies: ``rest_positions`` (N, 3) float64 (the positions the builder placed),
     ``tets`` (M, 4) int32, ``tris`` (T, 3) int32, ``masses`` (N,), ``fixed`` (N,) bool,
+    ``tet_volume_host``, ``tet_mu_host``, ``tet_lambda_host``, ``tet_density_host`` (M,),
     ``components`` (N,) int64 particle components, ``component_count``, ``bodies`` (list of
     :class:`Body`), ``plates`` (list of :class:`Plate`), ``ground`` (dict or None).
     """
@@ -453,6 +454,7 @@ class ModelBuilder:
         m.tet_volume_host = vol
         m.tet_mu_host = mu_t
         m.tet_lambda_host = lam_t
+        m.tet_density_host = rho
         m.particle_color_offsets = offsets
         m.particle_stiffness_host = stiff
 
