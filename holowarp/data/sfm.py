@@ -202,8 +202,10 @@ def run_sfm(images, masks, out, *, settings: SfMSettings = SfMSettings(), overwr
     k = rec.num_reg_images() if rec is not None else 0
     need = max(3, math.ceil(settings.min_registered * n))
     if k < need:
+        hint = ("drop --mask-features if the background is static (its features help)" if settings.mask_features
+                else "use --mask-features if the object turned in front of a fixed camera")
         raise SfMError(f"structure from motion posed only {k} of {n} photos (need {need}: --min-registered "
-                       f"{settings.min_registered:g}); photos need more overlap or texture, or try --mask-features")
+                       f"{settings.min_registered:g}); neighbouring photos need more overlap or texture, or {hint}")
     _write_model(rec, out / "sparse" / "0")
     posed = {im.name for im in rec.images.values() if im.has_pose}
     summary = {"photos": n, "registered": k, "unregistered": [x for x in names if x not in posed],
