@@ -10,6 +10,10 @@ placement from soft mask edges. Users:
 - stage 0's initial surfels (:func:`sample_points_in_hull`);
 - the visual-hull baseline (:mod:`holowarp.baselines.hull`), on a grid.
 
+Silhouettes cannot see concavities; a rendered surface can: :func:`in_front_of_surface`
+marks the points some view sees in front of the surface (depth carving), which the vertex
+field initialisation uses with the stage-0 surfels' depth maps.
+
 Regions: :func:`look_region` is the cube every camera looks into (centred where the optical
 axes meet, half-size the nearest camera distance); :func:`view_sphere` the sphere every
 camera sees whole.
@@ -19,10 +23,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from holowarp.camera import axes_focus, camera_center
+from holowarp.camera import axes_focus, camera_center, project_points
 from holowarp.ops.carve import carve_grid, carve_points
 
-__all__ = ["hull_field", "inside_hull", "hull_grid", "look_region", "view_sphere", "sample_points_in_hull"]
+__all__ = [
+    "hull_field",
+    "inside_hull",
+    "hull_grid",
+    "look_region",
+    "view_sphere",
+    "sample_points_in_hull",
+    "in_front_of_surface",
+]
 
 
 def _views(dataset, views):
@@ -100,3 +112,36 @@ def sample_points_in_hull(dataset, n_points: int, *, views=None, candidates: int
     if len(pts) > n_points:
         pts = pts[rng.choice(len(pts), n_points, replace=False)]
     return pts, r
+
+
+def in_front_of_surface(dataset, points, views, depths, alphas, *, tol: float, min_views: int = 1,
+                        window: int = 1) -> np.ndarray:
+    """(P,) bool: ``points`` (P, 3) that at least ``min_views`` of ``views`` see in front of
+    the surface, i.e. empty space the silhouettes cannot show (a concavity seen from outside).
+
+    ``depths`` and ``alphas`` (len(views), H, W) are rendered depth and opacity maps of the
+    surface (e.g. the stage-0 surfels' median depth). A point is in front of the surface in a
+    view when it projects into the image where the surface is opaque (``alpha > 0.5`` over the
+    whole ``(2 window + 1)²`` neighbourhood) and its camera depth is smaller than the NEAREST
+    surface depth of that neighbourhood by more than ``tol``: taking the nearest depth keeps
+    thin walls whole where the depth map jumps (a bowl's rim in front of its floor).
+    """
+    from scipy.ndimage import minimum_filter
+
+    P = np.asarray(points, dtype=np.float64)
+    count = np.zeros(len(P), dtype=np.int64)
+    H, W = dataset.height, dataset.width
+    size = 2 * window + 1
+    for j, v in enumerate(views):
+        d = np.where(alphas[j] > 0.5, depths[j], 0.0)
+        opaque = minimum_filter((alphas[j] > 0.5).astype(np.uint8), size=size) > 0
+        near = minimum_filter(np.where(opaque, d, np.inf), size=size)
+        uv, z = project_points(P, dataset.viewmats[v], dataset.K[v])
+        col = np.floor(uv[:, 0]).astype(np.int64)
+        row = np.floor(uv[:, 1]).astype(np.int64)
+        ok = (z > 1e-6) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+        hit = np.zeros(len(P), dtype=bool)
+        r, c = row[ok], col[ok]
+        hit[ok] = opaque[r, c] & (z[ok] < near[r, c] - tol)
+        count += hit
+    return count >= min_views

@@ -324,7 +324,14 @@ class TopologyConfig:
         normal_rank_fraction: the ranked normal loss averages the largest this fraction of
             per-pixel errors ("large-error-focused", §5).
         phi_init: "visual_hull" (signed graph distance to the mask-consistent region, an
-            SDF-like start) or "inside" (every vertex at -phi_inside, all tets opaque).
+            SDF-like start), "depth_hull" (the same region minus the space some view sees in
+            front of the stage-0 surfels' surface: concavities the silhouettes miss) or
+            "inside" (every vertex at -phi_inside, all tets opaque).
+        depth_carve_views: at most this many training views carve by depth (every k-th).
+        depth_carve_tol: a vertex is carved when it lies this many mean edge lengths in front
+            of the rendered surface (margin against depth noise).
+        depth_carve_min_views: views that must agree before a vertex is carved.
+        depth_carve_window: half-size (pixels) of the neighbourhood whose nearest depth is used.
         phi_inside: |phi| of the constant initialisations.
         initial_opacity: the free per-tet opacities' value before the field sets them.
         color_init_views: at most this many training views average each surfel's initial
@@ -333,6 +340,11 @@ class TopologyConfig:
         dent_faces, dent_rounds: a low-alpha tet with at least ``dent_faces`` of its four faces
             on kept tets is kept (a one-tet pit); the rule is re-applied ``dent_rounds`` times,
             as keeping a dent can make a neighbour one.
+        pit_solid_fraction, pit_rounds: a vertex the prune would expose while its kept tets
+            fill more than this fraction of the solid angle around it keeps its tets (a pit
+            one vertex deep; 1 disables the rule), re-applied ``pit_rounds`` times.
+        genus_guard: a prune that would change the boundary's genus prunes only tets some
+            view shows to be empty (outside a silhouette or in front of the stage-0 surface).
         continuous_opacity: False runs the ablation "w/o continuous opacity": one free
             opacity per tet instead of the vertex field phi.
     """
@@ -357,12 +369,19 @@ class TopologyConfig:
     rotation_lr: float = 0.005
     normal_rank_fraction: float = 0.5
     phi_init: str = "visual_hull"
+    depth_carve_views: int = 40
+    depth_carve_tol: float = 1.0
+    depth_carve_min_views: int = 2
+    depth_carve_window: int = 1
     phi_inside: float = 0.3
     initial_opacity: float = 0.9
     color_init_views: int = 24
     color_init_clip: float = 0.02
     dent_faces: int = 3
     dent_rounds: int = 3
+    pit_solid_fraction: float = 1.0
+    pit_rounds: int = 3
+    genus_guard: bool = False
     continuous_opacity: bool = True
 
 

@@ -18,8 +18,8 @@ __all__ = ["main", "build_parser"]
 
 def build_parser():
     p = cli.parser("holowarp.gs2d", "Stage 0 (method.md §3): train 2D Gaussian surfels on a dataset folder "
-                   "(NeRF-synthetic or NeuS/IDR). Writes DIR/gaussians.ply and DIR/report.json.")
-    p.add_argument("dataset", metavar="DATASET", help="dataset folder (transforms_*.json or cameras_sphere.npz)")
+                   "(NeRF-synthetic, NeuS/IDR or COLMAP). Writes DIR/gaussians.ply and DIR/report.json.")
+    p.add_argument("dataset", metavar="DATASET", help="dataset folder (transforms_*.json, cameras_sphere.npz or COLMAP sparse/0 + images/ + masks/)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     cli.add_preset(p, what="stage-0 iterations and image resolution")
     p.add_argument("--iters", type=int, default=None, metavar="N", help="training iterations (default: the preset's; >= 0)")

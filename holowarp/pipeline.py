@@ -27,6 +27,7 @@ from holowarp.runstate import Checkpoint, HistoryLog, Phase, RunState, check_res
 from holowarp.stages.gaussian_init import train_gs2d
 from holowarp.stages.geometry import GeometryState, run_geometry_block
 from holowarp.stages.topology import (
+    EmptyEvidence,
     GaussianOptimizers,
     ViewTensors,
     after_first_prune,
@@ -45,7 +46,7 @@ def reconstruct(dataset_path=None, out_dir="runs/holowarp", *, config: ReconConf
     """Reconstruct one connected, manifold, inversion-free tet mesh from multi-view images.
 
     Args:
-        dataset_path: a NeRF-synthetic or NeuS/IDR folder; ``None`` synthesises the built-in
+        dataset_path: a NeRF-synthetic, NeuS/IDR or COLMAP folder; ``None`` synthesises the built-in
             bob into ``out_dir/data``.
         out_dir: output folder (see :mod:`holowarp.stages.export` for its contents).
         config: the :class:`holowarp.config.ReconConfig` (``holowarp.config.preset(...)``).
@@ -84,7 +85,7 @@ class _Run:
         self.cfg, self.device, self.progress = config, torch.device(device), progress
         self.state = ckpt.state if ckpt is not None else RunState()
         self.seconds_before, self._t0 = self.state.elapsed, time.perf_counter()
-        self.ckpt, self.model, self.opts = ckpt, None, None
+        self.ckpt, self.model, self.opts, self.evidence = ckpt, None, None, None
         if ckpt is not None and ckpt.model is not None:
             self.model = TetGaussians.from_state_dict(ckpt.model, device=self.device)
         self.bars = Bars(progress)
@@ -143,7 +144,10 @@ class _Run:
         self.bars.close("topology", "gaussian")
 
     def on_prune(self, ev: Prune):
-        info = prune(self.model, self.cfg.topology)
+        if self.cfg.topology.genus_guard and self.evidence is None:
+            self.evidence = EmptyEvidence(self.out / "stage0" / "gaussians.ply", self.ds, self.cfg.topology,
+                                          device=self.device)
+        info = prune(self.model, self.cfg.topology, evidence=self.evidence(self.model.mesh()) if self.evidence else None)
         if ev.first:
             after_first_prune(self.model)
         info["iteration"] = ev.iteration

@@ -19,7 +19,7 @@ def build_parser():
     p = cli.parser("holowarp.reconstruct",
                    "Reconstruct ONE connected, simulation-ready tet mesh (HoloTetSphere) from multi-view images.")
     p.add_argument("dataset", nargs="?", metavar="DATASET",
-                   help="NeRF-synthetic (transforms_*.json) or NeuS/IDR (cameras_sphere.npz) folder; "
+                   help="NeRF-synthetic (transforms_*.json), NeuS/IDR (cameras_sphere.npz) or COLMAP (sparse/0) folder; "
                         "omitted: the built-in bob, synthesised into DIR/data")  # fmt: skip
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     cli.add_preset(p)

@@ -86,7 +86,7 @@ def test_commands_share_one_convention_for_device_and_quiet():
     import importlib
 
     for module in ("holowarp.reconstruct", "holowarp.gs2d", "holowarp.synth", "holowarp.evaluate",
-                   "holowarp.simulate", "holowarp.convert", "holowarp.baselines.visual_hull"):
+                   "holowarp.simulate", "holowarp.convert", "holowarp.baselines.visual_hull", "holowarp.poses"):
         known = {o for a in importlib.import_module(module).build_parser()._actions for o in a.option_strings}
         assert {"--device", "--quiet"} <= known, module
     from holowarp.cli import PRESET_NAMES

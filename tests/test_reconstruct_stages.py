@@ -303,3 +303,32 @@ def test_prune_never_opens_sealed_cavities_nor_leaves_a_non_manifold_boundary(rn
     assert out.boundary_shells() == 1  # no internal void surface
     assert info["low_alpha"] == int(low.sum())
     assert info["pruned"] + info["kept_cavity"] + info["kept_dents"] + info["restored_for_manifold"] == info["low_alpha"]
+
+
+def test_depth_carving_empties_a_dent_the_silhouettes_fill_and_keeps_the_solid():
+    """A box with a deep spherical dent in its top: the visual hull fills the dent; depth maps
+    of the true surface (ray cast) carve it, and never the solid."""
+    from holowarp.carve import in_front_of_surface
+    from holowarp.render_gt import GTRenderer
+    from holowarp.shapes import shape_surface
+    from holowarp.synthesis import protocol_cameras
+
+    V, F = shape_surface("dented_box", resolution=48, max_faces=None)
+    res, n = 48, 24
+    viewmats, K = protocol_cameras(n, 2.2, res)
+    r = GTRenderer(V, F, supersample=1)
+    outs = [r.render(vm, K, res, res) for vm in viewmats]
+    ds = Dataset(images=np.stack([o["rgba"][..., :3] for o in outs]).astype(np.float32),
+                 masks=np.stack([o["mask"] for o in outs]).astype(np.float32), K=np.repeat(K[None], n, axis=0),
+                 viewmats=viewmats, train_idx=np.arange(n), test_idx=np.zeros(0, int), name="dent")
+    depths = np.stack([o["depth"] for o in outs])
+    alphas = np.stack([o["mask"] for o in outs])
+    g = np.linspace(-0.5, 0.5, 25)
+    P = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    hull = inside_hull(ds, P)
+    carved = in_front_of_surface(ds, P, np.arange(n), depths, alphas, tol=0.02, min_views=2)
+    in_dent = (np.linalg.norm(P - np.array([0.0, 0.0, 0.42]), axis=1) < 0.33) & (P[:, 2] < 0.28)
+    in_solid = (np.abs(P) < [0.43, 0.38, 0.28]).all(axis=1) & (np.linalg.norm(P - [0.0, 0.0, 0.42], axis=1) > 0.39)
+    assert hull[in_dent].mean() > 0.9  # silhouettes cannot see the dent
+    assert carved[in_dent & hull].mean() > 0.9  # depth does
+    assert not carved[in_solid].any()

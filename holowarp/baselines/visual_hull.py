@@ -16,7 +16,7 @@ __all__ = ["main", "build_parser"]
 def build_parser():
     p = cli.parser("holowarp.baselines.visual_hull",
                    "Visual-hull baseline: carve the training masks, marching cubes, fTetWild -> DIR/tetmesh.vtu")
-    p.add_argument("dataset", metavar="DATASET", help="dataset folder (NeRF-synthetic or NeuS/IDR)")
+    p.add_argument("dataset", metavar="DATASET", help="dataset folder (NeRF-synthetic, NeuS/IDR or COLMAP)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--grid", type=int, default=128, help="carving nodes along the hull's longest side (default 128, >= 8)")
     p.add_argument("--res", type=int, default=None, metavar="PX", help="load the dataset at this resolution (longer side)")

@@ -51,6 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grid", type=int, default=128, help="visual-hull grid (default 128)")
     p.add_argument("--scale-iters", type=float, default=None, help="multiply the fast preset's iterations")
     p.add_argument("--tag", default="fast", help="name of the reconstruction folder (compare variants)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a setting of the fast preset, e.g. topology.phi_init=depth_hull (repeatable)")
     p.add_argument("--workers", type=int, default=1, help="objects at a time (default 1)")
     p.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N")
     p.add_argument("--json", action="store_true", help="print JSON only")
@@ -69,7 +71,30 @@ def _mesh_file(name: str, work: Path) -> tuple[Path, str]:
     return Path(src), up
 
 
-def run_object(name: str, work: str, *, res: int, views: int, grid: int, scale_iters, tag: str, device: str) -> dict:
+def apply_overrides(cfg, overrides):
+    """``cfg`` with dotted ``section.field=value`` overrides applied (values parsed as JSON
+    when they parse, else kept as strings)."""
+    from dataclasses import fields, replace
+
+    for item in overrides:
+        key, _, raw = item.partition("=")
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw
+        parts = key.split(".")
+        if len(parts) == 1:
+            cfg = replace(cfg, **{parts[0]: value})
+        else:
+            sec = getattr(cfg, parts[0])
+            if parts[1] not in {f.name for f in fields(sec)}:
+                raise ValueError(f"--set {item}: {parts[0]} has no setting {parts[1]!r}")
+            cfg = replace(cfg, **{parts[0]: replace(sec, **{parts[1]: tuple(value) if isinstance(value, list) else value})})
+    return cfg
+
+
+def run_object(name: str, work: str, *, res: int, views: int, grid: int, scale_iters, tag: str, device: str,
+               overrides=()) -> dict:
     """Synthesise, hull, reconstruct and evaluate one object (each step skipped if done)."""
     import torch
 
@@ -94,6 +119,7 @@ def run_object(name: str, work: str, *, res: int, views: int, grid: int, scale_i
     if not (rec / "report.json").is_file():
         cfg = replace(preset("fast"), resolution=res)
         cfg = cfg.scaled(scale_iters) if scale_iters else cfg
+        cfg = apply_overrides(cfg, overrides)
         reconstruct(data, rec, config=cfg, device=device, resume=(rec / "checkpoints").is_dir(), progress=False)
     rep = json.loads((rec / "report.json").read_text())
     out = {"object": name, "genus_expected": OBJECTS[name][2], "concave": OBJECTS[name][3], "seconds_hull": t_vh,
@@ -144,7 +170,8 @@ def main(argv=None) -> int:
 
     device = resolve_device(args.device)
     work = check_output_dir(args.work, what="--work")
-    kw = dict(res=args.res, views=args.views, grid=args.grid, scale_iters=args.scale_iters, tag=args.tag, device=device)
+    kw = dict(res=args.res, views=args.views, grid=args.grid, scale_iters=args.scale_iters, tag=args.tag, device=device,
+              overrides=tuple(args.set))
     t0 = time.perf_counter()
     if args.workers > 1:
         from concurrent.futures import ProcessPoolExecutor

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from holowarp.camera import project_points
-from holowarp.carve import inside_hull
+from holowarp.carve import in_front_of_surface, inside_hull
 from holowarp.config import TopologyConfig
 from holowarp.errors import RunError
 from holowarp.manifold import restore_until_manifold
@@ -43,6 +43,7 @@ from holowarp.tetmesh import TetMesh
 __all__ = [
     "GaussianOptimizers",
     "ViewTensors",
+    "EmptyEvidence",
     "after_first_prune",
     "gaussian_step",
     "init_colors",
@@ -54,17 +55,68 @@ __all__ = [
 ]
 
 
-def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig) -> np.ndarray:
-    """Initial vertex field (V,), see the module docstring."""
+def surfel_depth_maps(gaussians_ply, dataset, views, *, device="cpu"):
+    """Median depth and opacity maps (len(views), H, W) of the stage-0 surfels in
+    ``gaussians_ply`` seen by ``views`` (the 2DGS surface the depth carving tests against)."""
+    from holowarp.gaussians import GaussianModel
+
+    g = GaussianModel.from_ply(gaussians_ply, device=device)
+    depths = np.empty((len(views), dataset.height, dataset.width), np.float32)
+    alphas = np.empty_like(depths)
+    with torch.no_grad():
+        for j, v in enumerate(views):
+            out = g.render(dataset.viewmats[v], dataset.K[v], dataset.width, dataset.height)
+            depths[j] = out["median_depth"].cpu().numpy()
+            alphas[j] = out["alpha"].cpu().numpy()
+    return depths, alphas
+
+
+class EmptyEvidence:
+    """Which tets some training view shows to be empty space: their centroid projects outside
+    a silhouette (outside the visual hull), or lies in front of the stage-0 surfels' surface
+    in ``depth_carve_min_views`` views (the prune's genus guard). The surfels' depth maps are
+    rendered once, on first use."""
+
+    def __init__(self, gaussians_ply, dataset, config: TopologyConfig, *, device="cpu"):
+        self.ply, self.ds, self.cfg, self.device = gaussians_ply, dataset, config, device
+        self.views = _carve_views(dataset.train_idx, config)
+        self._maps = None
+
+    def __call__(self, mesh: TetMesh) -> np.ndarray:
+        if self._maps is None:
+            self._maps = surfel_depth_maps(self.ply, self.ds, self.views, device=self.device)
+        c = mesh.vertices[mesh.tets].mean(axis=1)
+        E = mesh.edges()
+        tol = self.cfg.depth_carve_tol * float(np.linalg.norm(mesh.vertices[E[:, 0]] - mesh.vertices[E[:, 1]], axis=1).mean())
+        outside = ~inside_hull(self.ds, c, self.ds.train_idx, device=self.device)
+        return outside | in_front_of_surface(self.ds, c, self.views, *self._maps, tol=tol,
+                                             min_views=self.cfg.depth_carve_min_views, window=self.cfg.depth_carve_window)
+
+
+def _carve_views(views, config: TopologyConfig) -> np.ndarray:
+    views = np.asarray(views)
+    return views[:: max(1, len(views) // config.depth_carve_views)]
+
+
+def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig, *, depth_maps=None) -> np.ndarray:
+    """Initial vertex field (V,), see the module docstring. ``depth_maps`` (the stage-0
+    surfels' ``(depths, alphas)`` at ``_carve_views(views)``) is needed by ``"depth_hull"``."""
     V = mesh.num_vertices
     if config.phi_init == "inside":
         return np.full(V, -config.phi_inside)
-    if config.phi_init != "visual_hull":
-        raise ValueError(f"phi_init must be 'visual_hull' or 'inside', got {config.phi_init!r}")
+    if config.phi_init not in ("visual_hull", "depth_hull"):
+        raise ValueError(f"phi_init must be 'visual_hull', 'depth_hull' or 'inside', got {config.phi_init!r}")
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
     inside = inside_hull(dataset, mesh.vertices, views)
+    if config.phi_init == "depth_hull":
+        if depth_maps is None:
+            raise ValueError("phi_init 'depth_hull' needs the stage-0 surfels' depth maps")
+        E0 = mesh.edges()
+        tol = config.depth_carve_tol * float(np.linalg.norm(mesh.vertices[E0[:, 0]] - mesh.vertices[E0[:, 1]], axis=1).mean())
+        inside &= ~in_front_of_surface(dataset, mesh.vertices, _carve_views(views, config), *depth_maps, tol=tol,
+                                       min_views=config.depth_carve_min_views, window=config.depth_carve_window)
     if inside.all() or not inside.any():
         return np.full(V, -config.phi_inside if inside.all() else config.phi_inside)
     E = mesh.edges().astype(np.int64)
@@ -106,13 +158,15 @@ def init_colors(mesh: TetMesh, dataset, views, config: TopologyConfig) -> np.nda
     return np.where(cnt[:, None] > 0, acc / np.maximum(cnt, 1)[:, None], 0.5).clip(lo, 1.0 - lo)
 
 
-def init_model(mesh: TetMesh, dataset, views, config: TopologyConfig, *, seed: int = 0, device="cpu") -> TetGaussians:
+def init_model(mesh: TetMesh, dataset, views, config: TopologyConfig, *, seed: int = 0, device="cpu",
+               depth_maps=None) -> TetGaussians:
     """The §4/§5 model of ``mesh``: one surfel per tet, the initial field and colours.
 
     In the ablation "w/o continuous opacity" the per-tet opacities start from the same field,
     so the comparison isolates the parameterisation (no shared vertices, no eik/smooth)."""
     model = TetGaussians(mesh, colors=init_colors(mesh, dataset, views, config),
-                         phi=init_phi(mesh, dataset, views, config), config=config, device=device, seed=seed)
+                         phi=init_phi(mesh, dataset, views, config, depth_maps=depth_maps), config=config,
+                         device=device, seed=seed)
     if not config.continuous_opacity:
         model.freeze_opacity_from_field()
     return model
@@ -132,7 +186,10 @@ def init_model_from_surfels(gaussians_ply, dataset, tet_config, config: Topology
     g = load_gaussians_ply(gaussians_ply)
     mesh = initial_tetmesh(g["means"], g["opacities"], tet_config)
     say(f"initial tet mesh: {mesh.num_tets} tets, {mesh.num_vertices} vertices", progress)
-    return init_model(mesh, dataset, dataset.train_idx, config, seed=seed, device=device)
+    maps = None
+    if config.phi_init == "depth_hull":
+        maps = surfel_depth_maps(gaussians_ply, dataset, _carve_views(dataset.train_idx, config), device=device)
+    return init_model(mesh, dataset, dataset.train_idx, config, seed=seed, device=device, depth_maps=maps)
 
 
 def after_first_prune(model: TetGaussians) -> None:
@@ -259,20 +316,27 @@ def _one_minus_cos(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return 1.0 - (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-12)
 
 
-def prune(model: TetGaussians, config: TopologyConfig) -> dict:
+def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict:
     """Delete tets with alpha < prune_alpha and the vertices no tet uses (method.md §5).
 
-    Two rules keep the result a simulation-ready solid (method.md §0: one connected,
-    boundary-manifold mesh):
+    Guards keep the result a simulation-ready solid whose topology follows the images
+    (method.md §0: one connected, boundary-manifold mesh):
 
     - pruning never opens a sealed cavity: low-alpha tets that do not connect, through other
       low-alpha tets, to the current boundary are invisible in every view and stay;
     - pruning never digs one-tet dents: a low-alpha tet with three or four faces on kept
       tets stays (repeated a few times);
+    - pruning never digs pits: a vertex the prune would expose while its kept tets still
+      fill more than ``pit_solid_fraction`` of the full solid angle around it keeps its
+      tets (a multi-tet dent the face rule misses);
     - pruning never makes the boundary non-manifold: the pruned tets around any
       non-manifold edge or vertex are restored, repeatedly, until the boundary is a
       manifold. Restoring every pruned tet gives back the (manifold) mesh before the
-      prune, so this terminates with a manifold boundary whenever the input had one.
+      prune, so this terminates with a manifold boundary whenever the input had one;
+    - with ``evidence`` (M,) bool, the tets some view shows to be empty space (outside a
+      silhouette, or in front of the rendered surface): if the prune would change the
+      boundary's genus (open a tunnel, or cut a handle), only tets with evidence are
+      pruned, so topology follows the images, never the thickness of the tets.
 
     If pruning would empty the mesh, nothing is pruned (and the report says so). If it
     splits the mesh, the largest face-connected component is kept and the rest counted.
@@ -282,7 +346,8 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
         ``raw_components`` and ``raw_non_manifold`` (face-connected pieces and non-manifold
         boundary edges + vertices the plain rule would have left, before the guards below),
         ``kept_cavity`` (low-alpha tets kept because sealed), ``kept_dents`` (low-alpha tets
-        kept because three or more of their faces meet kept tets), ``restored_for_manifold``,
+        kept because three or more of their faces meet kept tets), ``kept_pits``,
+        ``restored_for_manifold``, ``kept_for_genus``, ``genus_before``, ``genus_after``,
         ``removed_components``, ``tets_removed_by_component``, ``tets_after``, ``emptied``.
     """
     with torch.no_grad():
@@ -293,8 +358,8 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
     low = alpha < config.prune_alpha
     info = {"tets_before": M, "low_alpha": int(low.sum()), "emptied": False}
     if low.all():
-        info.update(emptied=True, pruned=0, kept_cavity=0, kept_dents=0, restored_for_manifold=0, removed_components=0,
-                    raw_components=0, raw_non_manifold=0,
+        info.update(emptied=True, pruned=0, kept_cavity=0, kept_dents=0, kept_pits=0, restored_for_manifold=0,
+                    kept_for_genus=0, removed_components=0, raw_components=0, raw_non_manifold=0,
                     tets_removed_by_component=0, tets_after=M)
         return info
     adj = mesh.face_adjacency()
@@ -306,20 +371,77 @@ def prune(model: TetGaussians, config: TopologyConfig) -> dict:
     info["raw_components"] = int(raw.num_components())
     info["raw_non_manifold"] = int(len(raw.non_manifold_edges()) + len(raw.non_manifold_vertices()))
     info["kept_dents"] = _keep_dents(drop, adj, config)
+    info["kept_pits"] = _keep_pits(mesh, drop, config)
+    keep, ids, n, removed = _guarded_keep(mesh, drop, info)
+    info["genus_before"] = int(mesh.genus())
+    info["kept_for_genus"] = 0
+    if evidence is not None and n == 1 and TetMesh(mesh.vertices, T[ids], validate=False).genus() != info["genus_before"]:
+        blind = drop & ~np.asarray(evidence, dtype=bool)
+        info["kept_for_genus"] = int(blind.sum())
+        drop &= ~blind
+        keep, ids, n, removed = _guarded_keep(mesh, drop, info)
+    info["pruned"] = int(M - len(ids) - removed)
+    model.keep(ids)
+    info.update(removed_components=max(n - 1, 0), tets_removed_by_component=removed, tets_after=model.num_tets,
+                genus_after=int(model.mesh().genus()))
+    return info
+
+
+def _guarded_keep(mesh: TetMesh, drop: np.ndarray, info: dict):
+    """The manifold guard and the largest component: (keep mask, kept ids, components,
+    tets removed with the smaller components); ``info["restored_for_manifold"]`` is set."""
+    T = mesh.tets
     keep, restored = restore_until_manifold(mesh.vertices, T, ~drop, drop)
     info["restored_for_manifold"] = restored
-    info["pruned"] = int((~keep).sum())
-    sub = TetMesh(mesh.vertices, T[keep], validate=False)
-    labels, n = sub.components()
+    labels, n = TetMesh(mesh.vertices, T[keep], validate=False).components()
     ids = np.flatnonzero(keep)
     removed = 0
     if n > 1:
         largest = labels == np.argmax(np.bincount(labels))
         removed = int((~largest).sum())
         ids = ids[largest]
-    model.keep(ids)
-    info.update(removed_components=max(n - 1, 0), tets_removed_by_component=removed, tets_after=model.num_tets)
-    return info
+    return keep, ids, n, removed
+
+
+def _corner_solid_angles(V: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """(M, 4) solid angle (steradians) of each tet at each of its corners (Van Oosterom and
+    Strackee 1983)."""
+    out = np.empty(T.shape, dtype=np.float64)
+    for k in range(4):
+        o = [(k + 1) % 4, (k + 2) % 4, (k + 3) % 4]
+        a, b, c = (V[T[:, j]] - V[T[:, k]] for j in o)
+        la, lb, lc = (np.linalg.norm(x, axis=1) for x in (a, b, c))
+        num = np.abs(np.einsum("ij,ij->i", a, np.cross(b, c)))
+        den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", a, c) * lb \
+            + np.einsum("ij,ij->i", b, c) * la
+        out[:, k] = 2.0 * np.arctan2(num, den)
+    return out
+
+
+def _keep_pits(mesh: TetMesh, drop: np.ndarray, config: TopologyConfig) -> int:
+    """Take out of ``drop`` (in place) the tets around vertices the prune would leave in a
+    pit; returns how many. A vertex is in a pit when it is interior now, would be on the
+    boundary after the prune, and its kept tets fill more than ``pit_solid_fraction`` of the
+    4 pi steradians around it (a shallow hole one vertex deep)."""
+    if config.pit_solid_fraction >= 1.0:
+        return 0
+    T, N = mesh.tets, mesh.num_vertices
+    omega = _corner_solid_angles(mesh.vertices, T)
+    interior = np.ones(N, dtype=bool)
+    interior[mesh.surface_vertices()] = False
+    filled = 0
+    for _ in range(config.pit_rounds):
+        kept = np.zeros(N)
+        np.add.at(kept, T[~drop].ravel(), omega[~drop].ravel())
+        exposed = np.zeros(N, dtype=bool)
+        exposed[T[drop].ravel()] = True
+        pit = interior & exposed & (kept > config.pit_solid_fraction * 4.0 * np.pi)
+        back = drop & pit[T].any(axis=1)
+        if not back.any():
+            break
+        drop &= ~back
+        filled += int(back.sum())
+    return filled
 
 
 def _open_low_alpha(low: np.ndarray, adj: np.ndarray) -> np.ndarray:
