@@ -14,7 +14,9 @@ be an inversion in float64):
   "Aggressive Tetrahedral Mesh Improvement", §3): ascend the soft minimum of the star's
   qualities along its finite-difference gradient, restricted to the vertex's allowed
   directions, try ``n_steps`` step lengths and keep the best position, but only if it raises
-  the star's hard minimum quality by more than ``min_gain``. A boundary vertex's trial
+  the star's hard minimum quality by more than ``min_gain`` and, unless that minimum is
+  below ``mean_guard`` (a bad star: its worst tet comes first), without lowering the star's
+  mean quality (polishing must not cost the average). A boundary vertex's trial
   position is admissible only if its boundary triangles move (two-sided Hausdorff,
   :func:`umbrella_move`) by at most the vertex's ``budget``. A vertex of the set moves only
   its own position and reads only its star's other vertices (and its boundary triangles'),
@@ -157,6 +159,23 @@ def _star_min(
     for s in range(s0, s1):
         m = wp.min(m, _star_tet_quality(x, tets[star_tets[s]], star_local[s], y, mode))
     return m
+
+
+@wp.func
+def _star_mean(
+    x: wp.array(dtype=wp.vec3d),
+    tets: wp.array(dtype=wp.vec4i),
+    star_tets: wp.array(dtype=wp.int32),
+    star_local: wp.array(dtype=wp.int32),
+    s0: int,
+    s1: int,
+    y: wp.vec3d,
+    mode: int,
+) -> wp.float64:
+    acc = wp.float64(0.0)
+    for s in range(s0, s1):
+        acc += _star_tet_quality(x, tets[star_tets[s]], star_local[s], y, mode)
+    return acc / wp.float64(s1 - s0)
 
 
 @wp.func
@@ -304,6 +323,7 @@ def smooth_vertices_kernel(
     min_gain: wp.float64,  # least rise of the star's minimum quality for a move
     level: int,  # barycentric grid steps of the surface-move samples
     margin: wp.float64,  # factor on the sampled surface move (sampling under-estimates)
+    mean_guard: wp.float64,  # stars whose minimum is at least this must not lose mean quality
     q_before: wp.array(dtype=wp.float64),  # [K] out: star minimum before
     q_after: wp.array(dtype=wp.float64),  # [K] out: star minimum after (= before if not moved)
     moved_by: wp.array(dtype=wp.float64),  # [K] out: surface move of the step taken, m
@@ -322,6 +342,7 @@ def smooth_vertices_kernel(
             lsum += wp.length(x[t[j]] - x0)
         cnt += wp.float64(3.0)
     q0 = _star_min(x, tets, star_tets, star_local, s0, s1, x0, mode)
+    mean0 = _star_mean(x, tets, star_tets, star_local, s0, s1, x0, mode)
     q_before[k] = q0
     q_after[k] = q0
     moved_by[k] = wp.float64(0.0)
@@ -353,7 +374,7 @@ def smooth_vertices_kernel(
         y = x0 + alpha * dvec
         alpha = alpha * wp.float64(0.5)
         q = _star_min(x, tets, star_tets, star_local, s0, s1, y, mode)
-        if q > best:
+        if q > best and (q0 < mean_guard or _star_mean(x, tets, star_tets, star_local, s0, s1, y, mode) >= mean0):
             hm = wp.float64(0.0)
             if f1 > f0:
                 hm = wp.min(margin * umbrella_move(x, bfaces, bface_ids, f0, f1, v, y, level), wp.length(y - x0))

@@ -13,7 +13,7 @@ from holowarp.bench.improve import plant_slivers
 from holowarp.mesh_io import read_tetmesh, write_tetmesh
 from holowarp.primitives import box_tetmesh
 from holowarp.stages import improve as I
-from holowarp.tetmesh import TET_EDGES, TET_FACES, TetMesh
+from holowarp.tetmesh import TET_EDGES, TetMesh
 
 REGULAR = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float64)
 
@@ -135,13 +135,13 @@ def _ref_smooth_step(V, T, bf, verts, proj, budget, cfg, mode):
         star, loc = np.nonzero(T == v)
         x0 = V[v].copy()
 
-        def qs(y):
+        def qs(y, star=star, loc=loc):
             P = V[T[star]].copy()
             P[np.arange(len(star)), loc] = y
             return I._quality_of_points(P, mode)
 
         h = np.linalg.norm(V[T[star]] - x0, axis=2).sum() / (3 * len(star))
-        q0 = qs(x0).min()
+        q0, mean0 = qs(x0).min(), qs(x0).mean()
 
         def soft(y):
             q = qs(y)
@@ -161,7 +161,7 @@ def _ref_smooth_step(V, T, bf, verts, proj, budget, cfg, mode):
             y = x0 + alpha * d
             alpha *= 0.5
             q = qs(y).min()
-            if q > best:
+            if q > best and (q0 < cfg.mean_guard or qs(y).mean() >= mean0):
                 hm = 0.0
                 if len(faces):
                     Po = V[faces][None]
@@ -393,7 +393,9 @@ def test_zero_surface_budget_keeps_the_boundary_exactly(rng):
     out, _, info = I.improve(mesh, I.ImproveConfig(max_surface_move=0.0))
     v0, f0 = mesh.surface_mesh()
     v1, f1 = out.surface_mesh()
-    key = lambda V, F: sorted(tuple(sorted(map(tuple, np.round(V[f], 12).tolist()))) for f in F)  # noqa: E731
+    def key(V, F):
+        return sorted(tuple(sorted(map(tuple, np.round(V[f], 12).tolist()))) for f in F)
+
     assert key(v0, f0) == key(v1, f1)
     assert info["surface_hausdorff"] <= 1e-12 * I.mean_boundary_edge(mesh)
     assert info["after"]["quality_min"] >= info["before"]["quality_min"]
@@ -461,7 +463,7 @@ def test_cli_errors_are_one_line_naming_the_culprit_before_any_work(tmp_path, ca
     t[0] = t[0, [0, 2, 1, 3]]
     write_tetmesh(mixed, TetMesh(mesh.vertices, t))
     argv = [a.format(src=src, tmp=tmp_path, mixed=mixed) for a in args]
-    rc, out, err = _run(capsys, *argv)
+    rc, _, err = _run(capsys, *argv)
     assert rc == 2
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and names in lines[0], err

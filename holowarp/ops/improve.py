@@ -88,7 +88,7 @@ class SmoothingPass:
         proj: (N, 3, 3) projector onto each vertex's allowed directions.
         mode: quality measure.
         params: the kernel's scalars in order: beta, step_frac, n_steps, fd_frac, min_gain,
-            level, margin (see :func:`holowarp.kernels.improve.smooth_vertices_kernel`).
+            level, margin, mean_guard (see :func:`holowarp.kernels.improve.smooth_vertices_kernel`).
     """
 
     def __init__(self, k: ImproveKernels, V, T, star, bfaces, proj, mode: int, params):
@@ -102,9 +102,9 @@ class SmoothingPass:
         self.bfaces = [_i32(wp, f_offs, dev), _i32(wp, f_ids, dev),
                        wp.array(faces if len(faces) else np.zeros((1, 3), np.int32), dtype=wp.vec3i, device=dev)]
         self.proj = wp.array(np.ascontiguousarray(proj, dtype=np.float64), dtype=wp.mat33d, device=dev)
-        beta, step, n_steps, fd, gain, level, margin = params
+        beta, step, n_steps, fd, gain, level, margin, guard = params
         self.consts = [int(mode), wp.float64(beta), wp.float64(step), int(n_steps), wp.float64(fd), wp.float64(gain),
-                       int(level), wp.float64(margin)]
+                       int(level), wp.float64(margin), wp.float64(guard)]
 
     def step(self, verts: np.ndarray, budget: np.ndarray):
         """Smooth the independent vertices ``verts`` (K,) in place, each boundary vertex's

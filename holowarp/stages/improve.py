@@ -19,8 +19,8 @@ for the surface operations is then only what needs them.
    faces) is deleted with that vertex. These move the surface by the local two-sided
    Hausdorff distance between the old and new triangles, which must fit the surface budget
    left there (see below). A cap is deleted only once the tets it would expose are decent
-   (``boundary_threshold``): below it they can still be fixed from inside, above it only the
-   surface budget could help them. Changes are vertex-disjoint, and every batch is checked
+   (``boundary_threshold``) or caps themselves no worse than it: a bad interior tet can still
+   be fixed from inside, but once on the surface only the surface budget could help it. Changes are vertex-disjoint, and every batch is checked
    (components, genus, shells, manifoldness) before it is kept. Boundary changes go first
    in a round, before an interior flip can bury a cap under tets no surface operation reaches;
 2. **interior flips** (vectorised, repeated while they help): every interior face is a 2-3
@@ -30,12 +30,15 @@ for the surface operations is then only what needs them.
    meshes": the ring's tets are replaced by the best triangulation of the ring polygon
    with every triangle coned to both edge ends; a ring of 3 is the 3-2 flip, of 4 the 4-4
    flip). All triangulations of every ring are scored at once. A candidate counts only if
-   the worst new tet beats the worst old one by ``min_gain``; per pass, an independent set
+   the worst new tet beats the worst old one by ``min_gain`` and, where the worst old tet is
+   already decent (``mean_guard``), the new tets' mean quality is no lower than the old
+   ones' (polishing must not cost the average); per pass, an independent set
    (no shared tet) of the best is applied. Interior faces and edges are off the boundary,
    so the boundary is untouched;
 3. **smoothing** (Warp, :func:`holowarp.kernels.improve.smooth_vertices_kernel`, one launch
    per independent set of a vertex colouring): each vertex climbs the soft minimum of its
-   star's qualities and moves only if the star's worst quality rises. Interior vertices
+   star's qualities and moves only if the star's worst quality rises (and, for a star that is
+   already decent, its mean does not drop). Interior vertices
    move freely. Boundary vertices move only tangentially (in the null space of the
    area-weighted normal covariance of their boundary triangles: a smooth vertex slides in
    its tangent plane, a crease vertex along the crease, a corner not at all), and only to
@@ -56,10 +59,10 @@ which bounds it exactly); it is allowed where max(err over the patch's vertices)
 triangle inequality the whole surface then stays within the bound of the input;
 ``info["surface_hausdorff"]`` measures it.
 
-Quality: the "sine measure" of Klingner & Shewchuk (smallest dihedral-angle sine over the
-regular tet's) by default, see :mod:`holowarp.kernels.improve`. It is small for small and
-for nearly flat (~180°) dihedral angles alike: the slivers and caps that make an FEM solver
-substep or soften.
+Quality: by default the smaller of the "sine measure" of Klingner & Shewchuk (smallest
+dihedral-angle sine over the regular tet's) and Newton's volume-length shape quality eta,
+see :mod:`holowarp.kernels.improve`. Both are small for small and for nearly flat (~180°)
+dihedral angles alike: the slivers and caps that make an FEM solver substep or soften.
 
 Everything on tets is vectorised NumPy (sorting-based hashing of faces and edges) or Warp
 (qualities of whole meshes and of flip candidates, smoothing; ``device`` picks CPU or
@@ -76,7 +79,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -122,7 +125,10 @@ class ImproveConfig:
             0.1).
         quality: the measure every operation maximises: ``"sine"`` (smallest dihedral
             sine; Klingner & Shewchuk's best measure for dihedral angles), ``"eta"``
-            (volume-length) or ``"sine_eta"`` (the smaller of both).
+            (volume-length) or ``"sine_eta"`` (the smaller of both, the default: it drives
+            the dihedral angles like the sine and keeps Newton's eta and the aspect ratio
+            from paying for them; on bob and spot it ends with the better mean aspect and
+            twice the minimum eta of the sine alone, at the same worst dihedral).
         min_gain: least rise of the local worst quality that counts as an improvement
             (quality units, 1 = regular tet); keeps flips from cycling on round-off.
         flip_threshold: only faces and edges with a tet below this quality are tried as
@@ -136,6 +142,9 @@ class ImproveConfig:
         boundary_threshold: surface-moving operations (boundary flips, cap deletion,
             boundary-vertex smoothing) are spent only on tets below this quality, so that
             the surface budget goes to the worst elements; 0.35 is a dihedral angle of ~19°.
+        mean_guard: a flip or a smoothing step whose region's worst tet is already above
+            this quality must not lower the region's mean quality; below it, raising the
+            worst tet is all that counts (0.35, a dihedral angle of ~19°).
         smooth_beta: soft-minimum sharpness of the smoothing objective (1/quality).
         smooth_step: first trial step, in mean edge lengths of the vertex's star.
         smooth_line_steps: trial steps per vertex and pass, each half the previous.
@@ -166,7 +175,7 @@ class ImproveConfig:
     """
 
     max_surface_move: float = 0.1
-    quality: str = "sine"
+    quality: str = "sine_eta"
     min_gain: float = 1e-3
     flip_threshold: float = 0.75
     max_ring: int = 7
@@ -175,6 +184,7 @@ class ImproveConfig:
     smooth_passes: int = 2
     smooth_threshold: float = 0.75
     boundary_threshold: float = 0.35
+    mean_guard: float = 0.35
     smooth_beta: float = 40.0
     smooth_step: float = 0.25
     smooth_line_steps: int = 6
@@ -617,8 +627,9 @@ def _retriangulate_rings(w: _Work, u, v, rv, m: int, edges: _EdgeTable):
 
     The ring's tets are replaced by a triangulation of the polygon ``rv`` (G, m) (in ring
     order), every triangle coned to u and to v; for an open fan the chord p_0 p_{m-1}
-    closes the polygon. Returns (quality of the worst new tet (G,), the new tets
-    (G, 2(m-2), 4), ok (G,): the triangulation's inner diagonals are not edges yet).
+    closes the polygon. Returns (quality of the worst new tet (G,), their mean quality (G,),
+    the new tets (G, 2(m-2), 4), ok (G,): the triangulation's inner diagonals are not edges
+    yet).
     """
     tab = _POLYGONS[m]
     G = len(u)
@@ -628,10 +639,12 @@ def _retriangulate_rings(w: _Work, u, v, rv, m: int, edges: _EdgeTable):
     vv = np.broadcast_to(v[:, None], pa.shape)
     up = np.stack([uu, pa, pb, pc], axis=-1).reshape(-1, 4)
     dn = np.stack([vv, pa, pc, pb], axis=-1).reshape(-1, 4)
-    qc = np.minimum(w.quality_of(up), w.quality_of(dn)).reshape(pa.shape)  # [G, Cc]
+    qu, qd = w.quality_of(up).reshape(pa.shape), w.quality_of(dn).reshape(pa.shape)
+    qc = np.minimum(qu, qd)  # [G, Cc]
     qt = qc[:, tab.tri].min(axis=2)  # [G, Tn]
     best = np.argmax(qt, axis=1)
     qbest = qt[np.arange(G), best]
+    qmean = (qu + qd)[np.arange(G)[:, None], tab.tri[best]].sum(axis=1) / (2 * (m - 2))
     trs = c[tab.tri[best]]  # [G, m-2, 3] polygon positions
     A, B, C = (np.take_along_axis(rv, trs[:, :, i], axis=1) for i in range(3))
     uu, vv = np.broadcast_to(u[:, None], A.shape), np.broadcast_to(v[:, None], A.shape)
@@ -642,7 +655,7 @@ def _retriangulate_rings(w: _Work, u, v, rv, m: int, edges: _EdgeTable):
         a_ = np.take_along_axis(rv, dg[:, j, :1], axis=1)[:, 0]
         b_ = np.take_along_axis(rv, dg[:, j, 1:], axis=1)[:, 0]
         ok &= ~edges.contains(a_, b_)
-    return qbest, new, ok
+    return qbest, qmean, new, ok
 
 
 def _pad(arrs, fill=-1):
@@ -673,8 +686,11 @@ def _interior_flip_pass(w: _Work) -> int:
         face = T[e_ids[:, None], TET_FACES[k_ids]]  # [C, 3] outward from e
         o = T[f_ids].sum(axis=1) - face.sum(axis=1)  # the other apex
         new = np.stack([np.stack([d, o, face[:, i], face[:, (i + 1) % 3]], axis=1) for i in range(3)], axis=1)
-        gain = w.quality_of(new.reshape(-1, 4)).reshape(-1, 3).min(axis=1) - qo
-        ok = (gain > cfg.min_gain) & ~edges.contains(d, o)
+        qn = w.quality_of(new.reshape(-1, 4)).reshape(-1, 3)
+        gain = qn.min(axis=1) - qo
+        # A flip must raise the worst tet and must not lower the tets' mean quality.
+        keeps_mean = (qo < cfg.mean_guard) | (qn.mean(axis=1) >= 0.5 * (q[e_ids] + q[f_ids]))
+        ok = (gain > cfg.min_gain) & keeps_mean & ~edges.contains(d, o)
         if ok.any():
             c_old.append(np.stack([e_ids, f_ids], axis=1)[ok])
             c_new.append(new[ok])
@@ -692,9 +708,9 @@ def _interior_flip_pass(w: _Work) -> int:
         g, rt, qold = g[s], rt[s], qold[s]
         if len(g) == 0:
             continue
-        qbest, new, ok = _retriangulate_rings(w, edges.u[g], edges.v[g], edges.verts[g, :n], n, edges)
+        qbest, qmean, new, ok = _retriangulate_rings(w, edges.u[g], edges.v[g], edges.verts[g, :n], n, edges)
         gain = qbest - qold
-        ok &= gain > cfg.min_gain
+        ok &= (gain > cfg.min_gain) & ((qold < cfg.mean_guard) | (qmean >= q[rt].mean(axis=1)))
         if ok.any():
             c_old.append(rt[ok])
             c_new.append(new[ok])
@@ -783,9 +799,9 @@ def _fan_candidates(w: _Work, cand: _Candidates, edges: _EdgeTable, k: int, boun
         prio = 1.0 - qold  # the worse the cap, the sooner
     else:
         ok &= ~edges.contains(p0, pk)
-        qnew, new, diag_ok = _retriangulate_rings(w, u, v, rv, k + 1, edges)
+        qnew, qmean, new, diag_ok = _retriangulate_rings(w, u, v, rv, k + 1, edges)
         prio = qnew - qold
-        ok &= diag_ok & (prio > cfg.min_gain)
+        ok &= diag_ok & (prio > cfg.min_gain) & ((qold < cfg.mean_guard) | (qmean >= q[rt].mean(axis=1)))
     cand.add(ok, rt, new, touched, prio, h, k)
 
 
@@ -965,7 +981,7 @@ def _smooth(w: _Work, proj: np.ndarray, bound: float, rng, passes: int, only=Non
     np.cumsum(np.bincount(bf.reshape(-1), minlength=N), out=f_offs[1:])
     f_ids = np.argsort(bf.reshape(-1), kind="stable") // 3
     params = (cfg.smooth_beta, cfg.smooth_step, cfg.smooth_line_steps, cfg.smooth_fd, 0.1 * cfg.min_gain,
-              cfg.surface_samples, cfg.hausdorff_margin)
+              cfg.surface_samples, cfg.hausdorff_margin, cfg.mean_guard)
     sp = w.kernels.smoothing_pass(w.V, T, _vertex_stars(T, N), (f_offs, f_ids, bf), proj, w.mode, params)
     edges = mesh.edges().astype(np.int64) if only is None else None
     moved = np.zeros(N, dtype=bool)
