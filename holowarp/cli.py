@@ -3,6 +3,10 @@
 - ``--device cpu|cuda[:N]`` on every command (one code path; CUDA without a GPU is an error);
 - ``--quiet`` hides progress bars and status lines (bars also hide themselves when stderr is
   not a terminal, see :mod:`holowarp.progress`);
+- ``--threads N``: CPU threads of holowarp's kernel drivers (default ``$HOLOWARP_THREADS`` or
+  every core this process may use, :func:`holowarp.device.cpu_threads`); torch's own
+  intra-op pool is kept at one thread in every command: its tensors are small, and a
+  spinning OpenMP pool per process is what made two runs side by side crawl;
 - ``--preset fast|paper`` wherever a command has presets;
 - errors: one line ``error: ...`` on stderr naming the file or argument; exit status 2 when
   the input cannot be used (:class:`holowarp.errors.InputError`), 1 when the work started
@@ -31,9 +35,12 @@ def parser(prog: str, description: str, *, epilog: str | None = None) -> argpars
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
-def add_device(p: argparse.ArgumentParser, *, note: str = "") -> None:
+def add_device(p: argparse.ArgumentParser, *, note: str = "", threads: bool = True) -> None:
     p.add_argument("--device", default="cpu", metavar="DEV",
                    help="cpu, cuda or cuda:N (default: cpu)" + (f"; {note}" if note else ""))
+    if threads:
+        p.add_argument("--threads", type=int, default=None, metavar="N",
+                       help="CPU threads for holowarp's kernels (default: $HOLOWARP_THREADS or all cores; >= 1)")
 
 
 def add_quiet(p: argparse.ArgumentParser) -> None:
@@ -53,6 +60,20 @@ def fail(message: str) -> None:
     raise InputError(message)
 
 
+def _set_threads(threads) -> None:
+    import os
+
+    from holowarp.device import set_cpu_threads
+
+    if threads is not None:
+        if threads < 1:
+            raise InputError(f"--threads must be >= 1, got {threads}")
+        set_cpu_threads(threads)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")  # read by torch when it starts its pool
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
+
+
 def run(body, args) -> int:
     """Call ``body(args)`` and turn holowarp's errors into the convention above.
 
@@ -60,6 +81,7 @@ def run(body, args) -> int:
     """
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     try:
+        _set_threads(getattr(args, "threads", None))
         rc = body(args)
     except InputError as e:
         print(f"error: {one_line(e)}", file=sys.stderr)

@@ -63,7 +63,7 @@ def build_parser():
                    help="USD physics material nu, in [0, 0.5)")
     p.add_argument("--density", type=float, default=None, metavar="RHO",
                    help="USD physics material density [kg/m^3] (> 0)")
-    cli.add_device(p, note="convert runs no kernels; accepted so every command takes the same options")
+    cli.add_device(p, note="convert runs no kernels; accepted so every command takes the same options", threads=False)
     cli.add_quiet(p)
     return p
 

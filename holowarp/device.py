@@ -14,7 +14,11 @@ import tempfile
 
 from holowarp.errors import InputError
 
-__all__ = ["DeviceError", "resolve_device", "init_warp"]
+__all__ = ["DeviceError", "resolve_device", "init_warp", "cpu_threads", "set_cpu_threads", "THREADS_ENV"]
+
+#: Environment variable that sets how many CPU threads holowarp's Warp kernel drivers use.
+THREADS_ENV = "HOLOWARP_THREADS"
+_cpu_threads: int | None = None
 
 #: What Warp's native library prints to stderr at start-up on a machine without a CUDA
 #: driver. On such a machine every run is a CPU run and the line is noise; a CUDA request
@@ -102,3 +106,38 @@ def resolve_device(device: str | None = "cpu") -> str:
             raise DeviceError(f"--device {device}: only {wp.get_cuda_device_count()} CUDA device(s) present")
         return f"cuda:{idx}"
     raise DeviceError(f"--device {device!r}: expected 'cpu', 'cuda' or 'cuda:N'")
+
+
+def _available_cores() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def cpu_threads() -> int:
+    """CPU threads the kernel drivers split their heaviest launches over.
+
+    Warp runs a CPU launch on one thread; the drivers of the rasterisers cut their per-pixel
+    launches into pieces and run them on this many threads at once (the GIL is released while
+    a kernel runs). Default: ``$HOLOWARP_THREADS`` if set, else the cores this process may use.
+    Threads that wait for a kernel do not spin, so two runs on the same cores share them
+    without the slowdown of busy-waiting thread pools. Torch's own intra-op threads are set
+    separately (commands use one: their tensors are small).
+    """
+    global _cpu_threads
+    if _cpu_threads is None:
+        env = os.environ.get(THREADS_ENV, "").strip()
+        try:
+            _cpu_threads = max(1, int(env)) if env else _available_cores()
+        except ValueError:
+            raise DeviceError(f"${THREADS_ENV}={env!r}: expected a whole number of threads") from None
+    return _cpu_threads
+
+
+def set_cpu_threads(n: int | None) -> None:
+    """Set :func:`cpu_threads` (``None``: back to the default)."""
+    global _cpu_threads
+    if n is not None and int(n) < 1:
+        raise DeviceError(f"threads must be >= 1, got {n}")
+    _cpu_threads = None if n is None else int(n)

@@ -26,9 +26,6 @@ def build_parser():
     p.add_argument("--res", type=int, default=None, metavar="PX", help="longer image side in pixels (default: the preset's; >= 16)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's)")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
-    p.add_argument("--threads", type=int, default=1, metavar="N",
-                   help="torch CPU threads (default 1: the per-view tensors are small and Warp's CPU "
-                        "kernels are serial, so more threads mostly add synchronisation)")  # fmt: skip
     cli.add_device(p)
     cli.add_quiet(p)
     return p
@@ -42,15 +39,13 @@ def _run(args) -> int:
     from holowarp.device import resolve_device
     from holowarp.stages.gaussian_init import train_gs2d
 
-    if args.threads < 1:
-        cli.fail(f"--threads must be >= 1, got {args.threads}")
     if args.iters is not None and args.iters < 0:
         cli.fail(f"--iters must be >= 0, got {args.iters}")
     if args.res is not None and args.res < 16:
         cli.fail(f"--res must be at least 16 pixels, got {args.res}")
     cfg = preset(args.preset)
     device = resolve_device(args.device)
-    torch.set_num_threads(args.threads)
+    torch.set_num_threads(1)
     dataset = load_dataset(args.dataset, res=cfg.resolution if args.res is None else args.res)
     iters = cfg.schedule.stage0_iters if args.iters is None else args.iters
     seed = cfg.seed if args.seed is None else args.seed

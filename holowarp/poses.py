@@ -45,7 +45,8 @@ def build_parser():
     p.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
     p.add_argument("--threads", type=int, default=d.threads, metavar="N", help="CPU threads (default -1: all cores)")
     p.add_argument("--overwrite", action="store_true", help="replace a COLMAP model already in DIR")
-    cli.add_device(p, note="accepted for the common convention; structure from motion always runs on the CPU")
+    cli.add_device(p, note="accepted for the common convention; structure from motion always runs on the CPU",
+                   threads=False)
     cli.add_quiet(p)
     return p
 

@@ -40,6 +40,9 @@ One code path for CPU and CUDA. The pipeline, launched by ``holowarp.ops.surfels
    tape cannot replay it) walks the same list back to front, recovering each transmittance
    by division as 3DGS does, and accumulates per-surfel gradients with ``atomic_add``.
 
+Both per-pixel kernels take a ``tid_offset``, so a driver may launch them on slices of the
+tiles (on several CPU threads at once, each backward slice into its own gradient buffers).
+
 Per-pixel rules (method.md §3, 2DGS):
     rho   = min(u^2 + v^2, 2 |pixel - m|^2)          (object-space Gaussian, screen low-pass)
     alpha = min(ALPHA_MAX, o exp(-rho / 2)),  skipped when alpha < ALPHA_MIN
@@ -399,6 +402,7 @@ def rasterize_forward(
     width: int,
     height: int,
     tiles_x: int,
+    tid_offset: int,  # first thread of this launch (a launch may cover a slice of the tiles)
     out_rgb: wp.array(dtype=wp.vec3),  # [H*W]
     out_alpha: wp.array(dtype=float),  # [H*W]
     out_normal: wp.array(dtype=wp.vec3),  # [H*W]
@@ -410,7 +414,7 @@ def rasterize_forward(
     out_median_pos: wp.array(dtype=wp.int32),  # [H*W] list position of the median, -1 if none
     out_m2: wp.array(dtype=float),  # [H*W] sum w z^2 (for the distortion gradient)
 ):
-    pxy = _pixel_of_thread(wp.tid(), width, tiles_x)
+    pxy = _pixel_of_thread(wp.tid() + tid_offset, width, tiles_x)
     x = pxy[0]
     y = pxy[1]
     if x >= width or y >= height:
@@ -482,6 +486,7 @@ def rasterize_backward(
     width: int,
     height: int,
     tiles_x: int,
+    tid_offset: int,  # first thread of this launch (a launch may cover a slice of the tiles)
     out_alpha: wp.array(dtype=float),
     out_depth: wp.array(dtype=float),
     out_trans: wp.array(dtype=float),
@@ -503,7 +508,7 @@ def rasterize_backward(
     d_opacities: wp.array(dtype=float),
     d_colors: wp.array(dtype=wp.vec3),
 ):
-    pxy = _pixel_of_thread(wp.tid(), width, tiles_x)
+    pxy = _pixel_of_thread(wp.tid() + tid_offset, width, tiles_x)
     x = pxy[0]
     y = pxy[1]
     if x >= width or y >= height:

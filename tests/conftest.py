@@ -11,6 +11,9 @@ import pytest
 
 # Tests run Warp on the CPU backend; silence its banner.
 os.environ.setdefault("WARP_QUIET", "1")
+# One kernel thread unless a test asks for more: results are then those of the recorded
+# regression hash, and parallel tests (pytest -n) do not oversubscribe the cores.
+os.environ.setdefault("HOLOWARP_THREADS", "1")
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO.parent / "shared" / "data" / "meshes"

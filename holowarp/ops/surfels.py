@@ -14,7 +14,7 @@ import torch
 import warp as wp
 
 from holowarp.kernels import surfels as K_
-from holowarp.ops._warp import to_wp, wp_device, torch_stream
+from holowarp.ops._warp import run_chunks, thread_chunks, to_wp, torch_stream, wp_device
 
 __all__ = ["rasterize_surfels", "ProjectSurfels", "RasterizeSurfels", "check_surfel_inputs"]
 
@@ -29,7 +29,7 @@ def _zeros(shape, dtype, like: torch.Tensor) -> torch.Tensor:
 
 
 _PROJ_WIDTHS = (3, 2, 2, 3, 2, 2, 3)  # h2, e0, e1, pqd, centers, center_frac, normals
-_VEC = {2: wp.vec2, 3: wp.vec3}
+_VEC = {1: float, 2: wp.vec2, 3: wp.vec3}
 
 
 def _mat(m: torch.Tensor, wptype):
@@ -163,6 +163,35 @@ class _Binning:
         )  # fmt: skip
 
 
+#: Widths of the per-surfel gradients of the backward kernel: h2, e0, e1, pqd, centers,
+#: normals, opacities, colors.
+_GRAD_WIDTHS = (3, 2, 2, 3, 2, 3, 1, 3)
+
+
+def _backward_launches(bins, bg, width: int, height: int, n: int, like: torch.Tensor, pixel_inputs: list):
+    """Run the backward kernel on slices of the tiles (several CPU threads at once), each slice
+    accumulating into its own zeroed gradient buffers, summed in slice order afterwards, so a
+    given thread count always gives the same result. Returns the 8 gradient tensors."""
+    dev = wp_device(like)
+    ins = [to_wp(bins.list_start), to_wp(bins.list_ranks), to_wp(bins.order), bins.ranked_boxes, bins.ranked_splats,
+           bg, int(width), int(height), bins.tiles_x]
+    total = bins.tiles_x * bins.tiles_y * K_.TILE_SIZE * K_.TILE_SIZE
+
+    def launch(off, cnt):
+        bufs = [_zeros((n, w), torch.float32, like) for w in _GRAD_WIDTHS]
+        outs = [to_wp(b, _VEC[w]) if w > 1 else to_wp(b.view(n)) for b, w in zip(bufs, _GRAD_WIDTHS)]
+        wp.launch(K_.rasterize_backward, dim=cnt, inputs=ins + [off] + pixel_inputs, outputs=outs, device=dev)
+        return bufs
+
+    parts = run_chunks(launch, thread_chunks(total, dev, align=K_.TILE_SIZE * K_.TILE_SIZE), kernel=K_.rasterize_backward,
+                       device=dev)
+    out = parts[0]
+    for more in parts[1:]:
+        for acc, b in zip(out, more):
+            acc += b
+    return out
+
+
 class RasterizeSurfels(torch.autograd.Function):
     """Projected surfels -> images (front-to-back compositing, hand-written backward).
 
@@ -197,17 +226,18 @@ class RasterizeSurfels(torch.autograd.Function):
             last.zero_()
             median_pos.fill_(-1)
         else:
-            wp.launch(
-                K_.rasterize_forward,
-                dim=bins.tiles_x * bins.tiles_y * K_.TILE_SIZE * K_.TILE_SIZE,
-                inputs=[to_wp(bins.list_start), to_wp(bins.list_end), to_wp(bins.list_ranks), bins.ranked_boxes,
-                        bins.ranked_splats, bg, int(width), int(height), bins.tiles_x],
-                outputs=[to_wp(rgb.view(npix, 3), wp.vec3), to_wp(alpha.view(npix)),
-                         to_wp(normal.view(npix, 3), wp.vec3), to_wp(depth.view(npix)),
-                         to_wp(median.view(npix)), to_wp(dist.view(npix)), to_wp(trans), to_wp(last),
-                         to_wp(median_pos), to_wp(m2)],
-                device=wp_device(h2),
-            )  # fmt: skip
+            dev = wp_device(h2)
+            ins = [to_wp(bins.list_start), to_wp(bins.list_end), to_wp(bins.list_ranks), bins.ranked_boxes,
+                   bins.ranked_splats, bg, int(width), int(height), bins.tiles_x]
+            outs = [to_wp(rgb.view(npix, 3), wp.vec3), to_wp(alpha.view(npix)), to_wp(normal.view(npix, 3), wp.vec3),
+                    to_wp(depth.view(npix)), to_wp(median.view(npix)), to_wp(dist.view(npix)), to_wp(trans),
+                    to_wp(last), to_wp(median_pos), to_wp(m2)]  # fmt: skip
+            total = bins.tiles_x * bins.tiles_y * K_.TILE_SIZE * K_.TILE_SIZE
+            # Pixels are independent: slices of the tiles write disjoint outputs.
+            run_chunks(lambda off, cnt: wp.launch(K_.rasterize_forward, dim=cnt, inputs=ins + [off], outputs=outs,
+                                                  device=dev),
+                       thread_chunks(total, dev, align=K_.TILE_SIZE * K_.TILE_SIZE), kernel=K_.rasterize_forward,
+                       device=dev)
         ctx.bins = bins
         ctx.size = (width, height)
         ctx.bg = bg
@@ -233,30 +263,17 @@ class RasterizeSurfels(torch.autograd.Function):
         g_depth = g(g_depth, (npix,))
         g_median = g(g_median, (npix,))
         g_dist = g(g_dist, (npix,))
-        d_h2 = _zeros((n, 3), torch.float32, h2)
-        d_e0 = _zeros((n, 2), torch.float32, h2)
-        d_e1 = _zeros((n, 2), torch.float32, h2)
-        d_pqd = _zeros((n, 3), torch.float32, h2)
-        d_centers = _zeros((n, 2), torch.float32, h2)
-        d_normals = _zeros((n, 3), torch.float32, h2)
-        d_opac = _zeros((n,), torch.float32, h2)
-        d_colors = _zeros((n, 3), torch.float32, h2)
+        grads = None
         if bins.total > 0:
             with torch_stream(h2):
-                wp.launch(
-                    K_.rasterize_backward,
-                    dim=bins.tiles_x * bins.tiles_y * K_.TILE_SIZE * K_.TILE_SIZE,
-                    inputs=[to_wp(bins.list_start), to_wp(bins.list_ranks), to_wp(bins.order),
-                            bins.ranked_boxes, bins.ranked_splats, ctx.bg, int(width), int(height), bins.tiles_x,
-                            to_wp(alpha.view(npix)), to_wp(depth.view(npix)), to_wp(trans), to_wp(last),
-                            to_wp(median_pos), to_wp(m2),
-                            to_wp(g_rgb, wp.vec3), to_wp(g_alpha), to_wp(g_normal, wp.vec3), to_wp(g_depth),
-                            to_wp(g_median), to_wp(g_dist)],
-                    outputs=[to_wp(d_h2, wp.vec3), to_wp(d_e0, wp.vec2), to_wp(d_e1, wp.vec2),
-                             to_wp(d_pqd, wp.vec3), to_wp(d_centers, wp.vec2), to_wp(d_normals, wp.vec3), to_wp(d_opac),
-                             to_wp(d_colors, wp.vec3)],
-                    device=wp_device(h2),
-                )  # fmt: skip
+                grads = _backward_launches(bins, ctx.bg, width, height, n, h2,
+                                           [to_wp(alpha.view(npix)), to_wp(depth.view(npix)), to_wp(trans), to_wp(last),
+                                            to_wp(median_pos), to_wp(m2), to_wp(g_rgb, wp.vec3), to_wp(g_alpha),
+                                            to_wp(g_normal, wp.vec3), to_wp(g_depth), to_wp(g_median), to_wp(g_dist)])
+        if grads is None:
+            grads = [_zeros((n, w), torch.float32, h2) for w in _GRAD_WIDTHS]
+        d_h2, d_e0, d_e1, d_pqd, d_centers, d_normals, d_opac, d_colors = grads
+        d_opac = d_opac.view(n)
         # The background is seen through the final transmittance of every pixel.
         d_bg = (g_rgb * trans[:, None]).sum(0)
         return d_h2, d_e0, d_e1, d_pqd, d_centers, None, d_normals, d_opac, d_colors, d_bg, None, None, None
