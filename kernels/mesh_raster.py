@@ -250,12 +250,14 @@ def raster_kernel(
     width: int,
     tile_size: int,
     tiles_x: int,
+    row_offset: int,  # first image row of this launch (a launch may cover a band of rows)
     depth: wp.array(dtype=float),  # [H*W] out, 0 where empty
     face_id: wp.array(dtype=wp.int32),  # [H*W] out, -1 where empty
     normal: wp.array(dtype=wp.vec3),  # [H*W] out
 ):
     # Hard visibility at the pixel centre: nearest front face by perspective-correct depth.
     py, px = wp.tid()
+    py = py + row_offset
     pix = py * width + px
     ph = wp.vec3(float(px) + 0.5, float(py) + 0.5, 1.0)
     tile = (py // tile_size) * tiles_x + px // tile_size
@@ -319,6 +321,7 @@ def antialias_kernel(
     height: int,
     tile_size: int,
     tiles_x: int,
+    row_offset: int,  # first image row of this launch
     alpha: wp.array(dtype=float),  # [H*W] out
     winner: wp.array(dtype=wp.int32),  # [H*W] out: 4 f + k of the edge setting alpha, or -1
 ):
@@ -328,6 +331,7 @@ def antialias_kernel(
     # max(0, 0.5 - d), d the distance of its centre to that edge's line: a one-pixel box
     # filter across the silhouette. Every other pixel keeps its hard coverage.
     py, px = wp.tid()
+    py = py + row_offset
     pix = py * width + px
     inside = int(0)
     if face_id[pix] >= 0:
@@ -444,10 +448,12 @@ def raster_backward_kernel(
     grad_alpha: wp.array(dtype=float),  # [H*W]
     grad_normal: wp.array(dtype=wp.vec3),  # [H*W]
     width: int,
+    row_offset: int,  # first image row of this launch
     grad_uv: wp.array(dtype=wp.vec2),  # [V] accumulated
     grad_face_normal: wp.array(dtype=wp.vec3),  # [F] accumulated
 ):
     py, px = wp.tid()
+    py = py + row_offset
     pix = py * width + px
     w = winner[pix]
     if w >= 0:

@@ -28,7 +28,7 @@ import torch
 import warp as wp
 
 from holowarp.kernels import mesh_raster as K_
-from holowarp.ops._warp import to_wp, wp_device, torch_stream
+from holowarp.ops._warp import run_chunks, thread_chunks, to_wp, wp_device, torch_stream
 
 __all__ = ["rasterize_mesh", "mesh_face_neighbors", "DEFAULT_TILE_SIZE", "DEFAULT_NEAR"]
 
@@ -152,24 +152,18 @@ class _RasterizeMesh(torch.autograd.Function):
         winner = torch.empty((H, W), dtype=torch.int32, device=tdev)
         normal = torch.empty((H, W, 3), dtype=torch.float32, device=tdev)
         face_id_wp = to_wp(face_id.view(-1))
-        wp.launch(
-            K_.raster_kernel,
-            dim=(H, W),
-            inputs=[tile_offsets, tile_counts, tile_faces, f["edge_eq"], f["inv_z"], f["inv_area2"], f["fnormal"], W,
-                    tile_size, tiles_x],
-            outputs=[to_wp(depth.view(-1)), face_id_wp, to_wp(normal.view(-1, 3), wp.vec3)],
-            device=dev,
-        )
-        wp.launch(
-            K_.antialias_kernel,
-            dim=(H, W),
-            inputs=[
-                tile_offsets, tile_counts, tile_faces, f["p0"], f["p1"], f["p2"], f["edge_len"], contour, face_id_wp,
-                W, H, tile_size, tiles_x,
-            ],
-            outputs=[to_wp(alpha.view(-1)), to_wp(winner.view(-1))],
-            device=dev,
-        )
+        bands = thread_chunks(H, dev, align=tile_size, per_thread=2)
+        r_in = [tile_offsets, tile_counts, tile_faces, f["edge_eq"], f["inv_z"], f["inv_area2"], f["fnormal"], W,
+                tile_size, tiles_x]
+        r_out = [to_wp(depth.view(-1)), face_id_wp, to_wp(normal.view(-1, 3), wp.vec3)]
+        run_chunks(lambda r0, n: wp.launch(K_.raster_kernel, dim=(n, W), inputs=r_in + [r0], outputs=r_out, device=dev),
+                   bands, kernel=K_.raster_kernel, device=dev)
+        # Anti-aliasing reads the 4-neighbours' coverage: it starts once every band is rasterised.
+        a_in = [tile_offsets, tile_counts, tile_faces, f["p0"], f["p1"], f["p2"], f["edge_len"], contour, face_id_wp,
+                W, H, tile_size, tiles_x]
+        a_out = [to_wp(alpha.view(-1)), to_wp(winner.view(-1))]
+        run_chunks(lambda r0, n: wp.launch(K_.antialias_kernel, dim=(n, W), inputs=a_in + [r0], outputs=a_out,
+                                           device=dev), bands, kernel=K_.antialias_kernel, device=dev)
         ctx.mark_non_differentiable(depth, face_id)
         ctx.save_for_backward(vertices, faces, winner, face_id)
         ctx.raster = (pc, uv, R, Kmat, W, H)
@@ -195,18 +189,22 @@ class _RasterizeMesh(torch.autograd.Function):
         g_normal = g_normal.to(torch.float32).contiguous()
         faces_wp = to_wp(faces, wp.vec3i)
         x_wp = to_wp(vertices, wp.vec3)
-        grad_uv = wp.zeros(V, dtype=wp.vec2, device=dev)
-        grad_fn = wp.zeros(F, dtype=wp.vec3, device=dev)
-        wp.launch(
-            K_.raster_backward_kernel,
-            dim=(H, W),
-            inputs=[
-                faces_wp, uv, to_wp(winner.view(-1)), to_wp(face_id.view(-1)),
-                to_wp(g_alpha.view(-1)), to_wp(g_normal.view(-1, 3), wp.vec3), W,
-            ],
-            outputs=[grad_uv, grad_fn],
-            device=dev,
-        )
+        b_in = [faces_wp, uv, to_wp(winner.view(-1)), to_wp(face_id.view(-1)), to_wp(g_alpha.view(-1)),
+                to_wp(g_normal.view(-1, 3), wp.vec3), W]
+
+        def band(r0, n):
+            # Each band accumulates into its own buffers; summed in band order (deterministic).
+            g_uv, g_fn = wp.zeros(V, dtype=wp.vec2, device=dev), wp.zeros(F, dtype=wp.vec3, device=dev)
+            wp.launch(K_.raster_backward_kernel, dim=(n, W), inputs=b_in + [r0], outputs=[g_uv, g_fn], device=dev)
+            return wp.to_torch(g_uv), wp.to_torch(g_fn)
+
+        parts = run_chunks(band, thread_chunks(H, dev, align=8, per_thread=2), kernel=K_.raster_backward_kernel,
+                           device=dev)
+        g_uv_t, g_fn_t = parts[0]
+        for a, b in parts[1:]:
+            g_uv_t += a
+            g_fn_t += b
+        grad_uv, grad_fn = to_wp(g_uv_t, wp.vec2), to_wp(g_fn_t, wp.vec3)
         grad_x = torch.zeros((V, 3), dtype=torch.float32, device=vertices.device)
         gx_wp = to_wp(grad_x, wp.vec3)
         wp.launch(K_.face_normal_backward_kernel, dim=F, inputs=[faces_wp, x_wp, grad_fn], outputs=[gx_wp], device=dev)
