@@ -49,6 +49,9 @@ from holowarp.frame import FrameError, unit_cube_transform
 __all__ = [
     "SynthError",
     "synthesize",
+    "write_dataset",
+    "source_meta",
+    "check_synth_args",
     "default_dataset",
     "up_axis_rotation",
     "normalisation",
@@ -128,7 +131,7 @@ def _view_files(out: Path, split: str, i: int) -> dict:
     }
 
 
-def _check_args(out: Path, *, views, res, test_every, supersample, fov_deg, resume, overwrite, up_axis):
+def check_synth_args(out: Path, *, views, res, test_every, supersample, fov_deg, resume, overwrite, up_axis):
     if views < 1:
         raise SynthError(f"--views must be >= 1, got {views}")
     if res < 8:
@@ -219,15 +222,24 @@ def _write_transforms(out: Path, meta: dict, split_of, viewmats, K, res: int, fo
         atomic_write_json(out / f"transforms_{split}.json", doc)
 
 
-def _meta(mesh_path: Path, up_axis, R, scale, translation, *, views, test_every, res, supersample, distance, radius,
-          depth_scale, shading, lighting, obj) -> dict:
-    """The ``"holowarp"`` block of the transforms files (see the module docstring)."""
+def source_meta(mesh_path: Path, up_axis, R, scale, translation) -> dict:
+    """Where the dataset's world comes from: the first keys of the ``"holowarp"`` block
+    (``source``, ``up_axis`` and the object-to-world ``transform``)."""
+    return {
+        "source": str(Path(mesh_path).resolve()),
+        "up_axis": str(up_axis).lower(),
+        "transform": {"doc": "p_world = scale * (rotation @ p_obj) + translation", "rotation": np.asarray(R).tolist(),
+                      "scale": scale, "translation": np.asarray(translation).tolist()},
+    }
+
+
+def _meta(source: dict, *, views, test_every, res, supersample, distance, radius, depth_scale, shading, lighting,
+          obj) -> dict:
+    """The ``"holowarp"`` block of the transforms files (see the module docstring); ``source``
+    is :func:`source_meta`'s dict (or a scene's)."""
     return {
         "version": LAYOUT_VERSION,
-        "source": str(mesh_path.resolve()),
-        "up_axis": str(up_axis).lower(),
-        "transform": {"doc": "p_world = scale * (rotation @ p_obj) + translation", "rotation": R.tolist(),
-                      "scale": scale, "translation": translation.tolist()},
+        **source,
         "frame": "evaluation frame (method.md 1): GT bbox centred at the origin, largest side 1, Z up",
         "num_views": views, "test_every": test_every, "resolution": res, "supersample": supersample,
         "camera_distance": distance, "bounding_radius": radius,
@@ -283,20 +295,43 @@ def synthesize(
     """
     import time
 
-    from holowarp.progress import bar as progress_bar
     from holowarp.render_gt import GTRenderer
-    from holowarp.surface_io import write_surface
 
     t0 = time.perf_counter()
     mesh_path, out = Path(mesh_path), check_output_dir(out_dir)
-    _check_args(out, views=views, res=res, test_every=test_every, supersample=supersample, fov_deg=fov_deg,
+    check_synth_args(out, views=views, res=res, test_every=test_every, supersample=supersample, fov_deg=fov_deg,
                 resume=resume, overwrite=overwrite, up_axis=up_axis)
     obj, R, scale, translation = _normalised_mesh(mesh_path, up_axis)
+    renderer = GTRenderer.from_obj(obj, albedo=albedo, supersample=supersample, device=device)
+    return write_dataset(renderer, obj, out, source_meta(mesh_path, up_axis, R, scale, translation), views=views,
+                         res=res, test_every=test_every, fov_deg=fov_deg, supersample=supersample, margin=margin,
+                         resume=resume, progress=progress, desc=f"synth {mesh_path.stem}", t0=t0,
+                         gt_header=f"holowarp ground truth from {mesh_path.name}: welded, Z up, bbox centred at origin, "
+                                   "largest side 1")
+
+
+def write_dataset(renderer, obj, out: Path, source: dict, *, views: int, res: int, test_every: int, fov_deg: float,
+                  supersample: int, margin: float, resume: bool, progress: bool, desc: str, gt_header: str,
+                  t0: float | None = None) -> dict:
+    """Render ``renderer``'s surface from the protocol cameras and write the dataset folder
+    ``out`` (views, both transforms files, ``gt.obj`` = ``obj``'s geometry), for a surface
+    ALREADY in the evaluation frame.
+
+    ``obj`` (:class:`holowarp.surface_io.SurfaceMesh`) gives the geometry of ``gt.obj``, the
+    camera distance and the shading name; ``source`` is the first keys of the ``"holowarp"``
+    block (:func:`source_meta`). Arguments were checked by the caller; returns the summary
+    of :func:`synthesize`.
+    """
+    import time
+
+    from holowarp.progress import bar as progress_bar
+    from holowarp.surface_io import write_surface
+
+    t0 = time.perf_counter() if t0 is None else t0
     verts = obj.positions
     radius = float(np.linalg.norm(verts, axis=1).max())
     distance = radius / math.sin(math.radians(fov_deg) / 2.0) * margin
     viewmats, K = protocol_cameras(views, distance, res, fov_deg=fov_deg)
-    renderer = GTRenderer.from_obj(obj, albedo=albedo, supersample=supersample, device=device)
     depth_scale = (distance + radius) * 1.5 / 65535.0
     split_of = ["test" if i % test_every == 0 else "train" for i in range(views)]
     todo = [i for i in range(views)
@@ -304,15 +339,13 @@ def synthesize(
     for s in ("train", "test"):
         (out / s).mkdir(parents=True, exist_ok=True)
     shading = "texture" if obj.textured else ("vertex_colors" if obj.vertex_colors is not None else "albedo")
-    bar = progress_bar(views, initial=views - len(todo), desc=f"synth {mesh_path.stem}", unit="view", progress=progress)
+    bar = progress_bar(views, initial=views - len(todo), desc=desc, unit="view", progress=progress)
     _render_views(renderer, out, todo, split_of, viewmats, K, res, depth_scale, bar)
     bar.close()
-    meta = _meta(mesh_path, up_axis, R, scale, translation, views=views, test_every=test_every, res=res,
-                 supersample=supersample, distance=distance, radius=radius, depth_scale=depth_scale, shading=shading,
-                 lighting=renderer.lighting, obj=obj)
+    meta = _meta(source, views=views, test_every=test_every, res=res, supersample=supersample, distance=distance,
+                 radius=radius, depth_scale=depth_scale, shading=shading, lighting=renderer.lighting, obj=obj)
     _write_transforms(out, meta, split_of, viewmats, K, res, fov_deg)
-    write_surface(out / "gt.obj", (verts, obj.faces),
-                  header=f"holowarp ground truth from {mesh_path.name}: welded, Z up, bbox centred at origin, largest side 1")
+    write_surface(out / "gt.obj", (verts, obj.faces), header=gt_header)
     return {"out": str(out), "views": views, "train": split_of.count("train"), "test": split_of.count("test"),
             "rendered": len(todo), "resolution": res, "camera_distance": distance, "shading": shading,
             "seconds": time.perf_counter() - t0}

@@ -30,10 +30,11 @@ LAYERS = [
                 "holowarp.viz", "holowarp.previews", "holowarp.shapes"]),
     ("stages", ["holowarp.stages"]),
     ("applications", ["holowarp.runstate", "holowarp.report", "holowarp.preflight", "holowarp.pipeline",
-                      "holowarp.synthesis", "holowarp.simulation", "holowarp.baselines"]),
+                      "holowarp.synthesis", "holowarp.scene_synth", "holowarp.simulation", "holowarp.baselines",
+                      "holowarp.suite"]),
     ("commands", ["holowarp.cli", "holowarp.reconstruct", "holowarp.simulate", "holowarp.synth", "holowarp.evaluate",
                   "holowarp.convert", "holowarp.gs2d", "holowarp.improve", "holowarp.bench", "holowarp.poses",
-                  "holowarp.baselines.visual_hull"]),
+                  "holowarp.baselines.visual_hull", "holowarp.batch"]),
     ("api", ["holowarp"]),  # the package root: lazy re-exports of the public entry points
 ]
 
