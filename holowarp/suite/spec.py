@@ -70,6 +70,8 @@ _SECTIONS = {
     "simulate": {"chamfer_samples": (int, 100_000, 1)},
 }
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+#: The files of the run's own folder, which no object folder may take.
+_RESERVED = ("suite.json", "summary.json", "summary.md")
 
 
 class SuiteError(InputError):
@@ -202,10 +204,11 @@ def _object(src: Path, i: int, t, steps: dict) -> ObjectSpec:
             paths[key] = os.path.abspath(p)
     if "dataset" in paths and "gt" not in paths and (Path(paths["dataset"]) / "gt.obj").is_file():
         paths["gt"] = str(Path(paths["dataset"]) / "gt.obj")
-    default = Path(paths.get("mesh", paths.get("dataset", ""))).stem if "mesh" in paths else Path(paths["dataset"]).name
+    default = Path(paths["mesh"]).stem if "mesh" in paths else Path(paths["dataset"]).name
     name = _value(src, f"{where}.name", t.get("name", default), str)
-    if not _NAME.match(name):
-        raise SuiteError(f"{src}: {where}.name = {name!r}: expected letters, digits, '_', '.', '-' (it names a folder)")
+    if not _NAME.match(name) or name in _RESERVED:
+        raise SuiteError(f"{src}: {where}.name = {name!r}: expected letters, digits, '_', '.', '-' (it names a folder), "
+                         f"other than {', '.join(_RESERVED)}")
     up = _value(src, f"{where}.up_axis", t.get("up_axis", steps["synth"]["up_axis"]), str)
     if up not in ("y", "z"):
         raise SuiteError(f"{src}: {where}.up_axis = {up!r}: expected 'y' or 'z'")
