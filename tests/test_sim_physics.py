@@ -20,7 +20,6 @@ import pytest
 from holowarp.primitives import box_tetmesh
 from holowarp.sim import (
     GRAVITY,
-    ContactSettings,
     ModelBuilder,
     NonFiniteStateError,
     SolverVBDNeoHookean,

@@ -359,12 +359,14 @@ def _in_process(fn, *args):
 # ---------------------------------------------------------------------------- one scene
 def _scene_result(kind: str, n: int, args, device: str, use_newton: bool) -> dict:
     """Reference, search and timing of one scene (in a fresh process per engine)."""
+    grid = (tuple(args.substeps), tuple(args.iterations))
+    newton_grid = grid if args.newton_settings is None else ((args.newton_settings[0],), (args.newton_settings[1],))
     return _in_process(_scene_child, kind, n, args.duration, args.reference, args.steps, device, use_newton,
-                       (tuple(args.substeps), tuple(args.iterations)))
+                       (grid, newton_grid))
 
 
 def _scene_child(kind: str, n: int, duration: float, reference: str, steps: int, device: str, use_newton: bool,
-                 grid):
+                 grids):
     from holowarp.device import init_warp
 
     init_warp()
@@ -377,7 +379,7 @@ def _scene_child(kind: str, n: int, duration: float, reference: str, steps: int,
            "fall_height_m": judge.height, "reference": {"engine": "holowarp", "substeps": Sr, "iterations": Ir,
                                                          "seconds": time.perf_counter() - t0}}
     for engine in ("holowarp",) + (("newton",) if use_newton else ()):
-        found = _search(engine, sc, judge, device, grid)
+        found = _search(engine, sc, judge, device, grids[0] if engine == "holowarp" else grids[1])
         setting = found if found["reached"] else found["best"]
         timing = _in_process(_time_one, engine, kind, n, duration, setting["substeps"], setting["iterations"], steps,
                              device)
@@ -411,6 +413,9 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=5, help="timed steps per setting (default 5)")
     ap.add_argument("--substeps", default=",".join(map(str, SUBSTEPS)), help="candidate substeps (comma-separated)")
     ap.add_argument("--iterations", default=",".join(map(str, ITERATIONS)), help="candidate iterations")
+    ap.add_argument("--newton-settings", default=None, metavar="SxI",
+                    help="run Newton only at this setting instead of searching (large meshes, where its search "
+                         "takes hours on a CPU)")
     ap.add_argument("--no-newton", action="store_true", help="skip the Newton SolverVBD reference")
     args = ap.parse_args(argv)
 
@@ -422,6 +427,10 @@ def main(argv=None) -> int:
         bodies = _ints(args.bodies, [], "--bodies")
         args.substeps = _ints(args.substeps, list(SUBSTEPS), "--substeps")
         args.iterations = _ints(args.iterations, list(ITERATIONS), "--iterations")
+        if args.newton_settings is not None:
+            args.newton_settings = tuple(_ints(args.newton_settings.lower().replace("x", ","), [], "--newton-settings"))
+            if len(args.newton_settings) != 2:
+                raise ValueError("--newton-settings must be SUBSTEPSxITERATIONS")
         if args.steps < 1 or not args.duration > 0 or "x" not in args.reference.lower():
             raise ValueError("--steps must be >= 1, --duration > 0 and --reference SUBSTEPSxITERATIONS")
     except (DeviceError, ValueError) as e:
@@ -440,7 +449,8 @@ def main(argv=None) -> int:
         load.append(os.getloadavg())
     out = {"benchmark": "sim", "device": device, "dt": 1.0 / 60.0, "duration": args.duration,
            "criteria": {"com_tolerance_of_fall_height": COM_TOLERANCE, "chamfer_tolerance": CHAMFER_TOLERANCE,
-                        "substeps": args.substeps, "iterations": args.iterations, "abort_band": ABORT_BAND},
+                        "substeps": args.substeps, "iterations": args.iterations, "abort_band": ABORT_BAND,
+                        "newton_settings": args.newton_settings},
            "target_speedup": TARGET_SPEEDUP,
            "newton": "SolverVBD (add_soft_mesh), each engine at its own cheapest accurate setting" if use_newton
            else "not run (newton not installed or --no-newton)",
