@@ -3,8 +3,9 @@
 - ``--device cpu|cuda[:N]`` on every command (one code path; CUDA without a GPU is an error);
 - ``--quiet`` hides progress bars and status lines (bars also hide themselves when stderr is
   not a terminal, see :mod:`holowarp.progress`);
-- ``--threads N``: CPU threads of holowarp's kernel drivers (default ``$HOLOWARP_THREADS`` or
-  every core this process may use, :func:`holowarp.device.cpu_threads`); torch's own
+- ``--threads N``: CPU threads of holowarp's kernel drivers (default ``$HOLOWARP_THREADS``,
+  else the cores this process may use shared among the holowarp commands running at the
+  time, :func:`holowarp.device.cpu_threads`; results do not depend on it); torch's own
   intra-op pool is kept at one thread in every command: its tensors are small, and a
   spinning OpenMP pool per process is what made two runs side by side crawl;
 - ``--preset fast|paper`` wherever a command has presets;
@@ -40,7 +41,8 @@ def add_device(p: argparse.ArgumentParser, *, note: str = "", threads: bool = Tr
                    help="cpu, cuda or cuda:N (default: cpu)" + (f"; {note}" if note else ""))
     if threads:
         p.add_argument("--threads", type=int, default=None, metavar="N",
-                       help="CPU threads for holowarp's kernels (default: $HOLOWARP_THREADS or all cores; >= 1)")
+                       help="CPU threads for holowarp's kernels (default: $HOLOWARP_THREADS, else the cores shared "
+                            "among the holowarp commands running; results do not depend on it; >= 1)")
 
 
 def add_quiet(p: argparse.ArgumentParser) -> None:
@@ -80,9 +82,12 @@ def run(body, args) -> int:
     ``body`` returns an exit status (``None`` means 0).
     """
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    from holowarp.device import registered_run
+
     try:
         _set_threads(getattr(args, "threads", None))
-        rc = body(args)
+        with registered_run():  # running commands share the cores (holowarp.device.cpu_threads)
+            rc = body(args)
     except InputError as e:
         print(f"error: {one_line(e)}", file=sys.stderr)
         return 2

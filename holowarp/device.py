@@ -14,7 +14,8 @@ import tempfile
 
 from holowarp.errors import InputError
 
-__all__ = ["DeviceError", "resolve_device", "init_warp", "cpu_threads", "set_cpu_threads", "THREADS_ENV"]
+__all__ = ["DeviceError", "resolve_device", "init_warp", "cpu_threads", "set_cpu_threads", "THREADS_ENV", "live_runs",
+           "registered_run"]
 
 #: Environment variable that sets how many CPU threads holowarp's Warp kernel drivers use.
 THREADS_ENV = "HOLOWARP_THREADS"
@@ -115,29 +116,94 @@ def _available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+#: Where running holowarp commands register, so that the default thread count can share the
+#: cores among them (:func:`cpu_threads`).
+RUNS_DIR = os.path.join(tempfile.gettempdir(), f"holowarp-runs-{os.getuid() if hasattr(os, 'getuid') else 0}")
+_RECHECK_S = 2.0
+_shared: tuple[float, int] | None = None  # (time of the last count, threads it gave)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def live_runs() -> int:
+    """How many holowarp commands are registered in :data:`RUNS_DIR` and still running
+    (at least 1: this one). Stale entries of processes that died are removed."""
+    n = 0
+    try:
+        names = os.listdir(RUNS_DIR)
+    except OSError:
+        return 1
+    for name in names:
+        if not name.isdigit():
+            continue
+        if _alive(int(name)):
+            n += 1
+        else:
+            with contextlib.suppress(OSError):
+                os.remove(os.path.join(RUNS_DIR, name))
+    return max(1, n)
+
+
+@contextlib.contextmanager
+def registered_run():
+    """Register this process as a running holowarp command for the duration of the block."""
+    path = os.path.join(RUNS_DIR, str(os.getpid()))
+    try:
+        os.makedirs(RUNS_DIR, exist_ok=True)
+        with open(path, "w"):
+            pass
+    except OSError:  # a read-only or full temp dir: sharing is only an optimisation
+        path = None
+    try:
+        yield
+    finally:
+        if path is not None:
+            with contextlib.suppress(OSError):
+                os.remove(path)
+
+
 def cpu_threads() -> int:
     """CPU threads the kernel drivers split their heaviest launches over.
 
     Warp runs a CPU launch on one thread; the drivers of the rasterisers cut their per-pixel
     launches into pieces and run them on this many threads at once (the GIL is released while
-    a kernel runs). Default: ``$HOLOWARP_THREADS`` if set, else the cores this process may use.
-    Threads that wait for a kernel do not spin, so two runs on the same cores share them
-    without the slowdown of busy-waiting thread pools. Torch's own intra-op threads are set
-    separately (commands use one: their tensors are small).
+    a kernel runs). Default: ``$HOLOWARP_THREADS`` if set (or :func:`set_cpu_threads`, the
+    commands' ``--threads``), else the cores this process may use divided among the holowarp
+    commands running at the moment (:func:`live_runs`, re-counted every two seconds), so two
+    runs started side by side each take half the cores instead of both fighting for all of
+    them. The pieces do not depend on the thread count, so neither do the results. Torch's
+    own intra-op threads are set separately (commands use one: their tensors are small).
     """
-    global _cpu_threads
+    global _cpu_threads, _shared
     if _cpu_threads is None:
         env = os.environ.get(THREADS_ENV, "").strip()
-        try:
-            _cpu_threads = max(1, int(env)) if env else _available_cores()
-        except ValueError:
-            raise DeviceError(f"${THREADS_ENV}={env!r}: expected a whole number of threads") from None
-    return _cpu_threads
+        if env:
+            try:
+                _cpu_threads = max(1, int(env))
+            except ValueError:
+                raise DeviceError(f"${THREADS_ENV}={env!r}: expected a whole number of threads") from None
+    if _cpu_threads is not None:
+        return _cpu_threads
+    import time
+
+    now = time.monotonic()
+    if _shared is None or now - _shared[0] > _RECHECK_S:
+        _shared = (now, max(1, _available_cores() // live_runs()))
+    return _shared[1]
 
 
 def set_cpu_threads(n: int | None) -> None:
     """Set :func:`cpu_threads` (``None``: back to the default)."""
-    global _cpu_threads
+    global _cpu_threads, _shared
     if n is not None and int(n) < 1:
         raise DeviceError(f"threads must be >= 1, got {n}")
     _cpu_threads = None if n is None else int(n)
+    _shared = None

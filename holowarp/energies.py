@@ -6,10 +6,13 @@ scalars computed by Warp kernels:
 
 - :meth:`TetEnergies.biharmonic`: weighted bi-harmonic energy ``sum_e w_e ||(L F)_e||^2``;
 - :meth:`TetEnergies.inversion_penalty`: ``sum_e max(-det F_e, 0)^p``;
-- :meth:`TetEnergies.hc_laplacian`: the two-stage HC-Laplacian energy on boundary vertices.
+- :meth:`TetEnergies.hc_laplacian`: the two-stage HC-Laplacian energy on boundary vertices;
+- :meth:`TetEnergies.biharmonic_and_inversion`: the first two from one pass over the tets
+  (what a geometry step uses: F and det F computed once).
 
 The eikonal and smoothness losses of the per-vertex field ``phi`` (method.md §5) are plain
-functions, :func:`eikonal_loss` and :func:`smoothness_loss`.
+functions, :func:`eikonal_loss` and :func:`smoothness_loss`, and :func:`phi_edge_losses`
+computes both in one pass over the edges (what a topology step uses).
 
 Example:
     >>> energies = TetEnergies(mesh, weights="surface")   # rest = mesh.vertices
@@ -32,7 +35,9 @@ from holowarp.ops.tet_energy import (
     hc_targets,
     hc_topology,
     inversion_penalty,
+    phi_edge_losses,
     smoothness_loss,
+    tet_energies,
 )
 from holowarp.tetmesh import TetMesh
 
@@ -44,6 +49,7 @@ __all__ = [
     "biharmonic_weights",
     "eikonal_loss",
     "smoothness_loss",
+    "phi_edge_losses",
 ]
 
 #: gamma of the weighted bi-harmonic energy: weight of tets touching a surface vertex
@@ -250,6 +256,12 @@ class TetEnergies:
         """
         tets, dm_inv, _, _ = self._rest_for(x)
         return inversion_penalty(x, tets, dm_inv, p)
+
+    def biharmonic_and_inversion(self, x: torch.Tensor, p: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(self.biharmonic(x), self.inversion_penalty(x, p))`` from one fused pass: the
+        deformation gradients and their determinants are computed once."""
+        tets, dm_inv, adj, w = self._rest_for(x)
+        return tet_energies(x, tets, dm_inv, adj, w, p)
 
     def hc_topology(self, boundary_faces=None) -> HCTopology:
         """Surface connectivity for :meth:`hc_laplacian` (cached by the faces' contents)."""

@@ -116,12 +116,18 @@ def ranked_loss(errors: torch.Tensor, *, mask: torch.Tensor | None = None, top_f
     if not 0.0 < top_fraction <= 1.0:
         raise ValueError(f"ranked_loss: top_fraction must be in (0, 1], got {top_fraction}")
     e = errors.reshape(-1)
-    if mask is not None:
-        e = e[mask.reshape(-1).bool()]
-    if e.numel() == 0:
-        return errors.sum() * 0.0
-    k = max(1, int(math.ceil(top_fraction * e.numel())))
-    return torch.topk(e, k, sorted=False).values.mean()
+    if mask is None:
+        k = max(1, int(math.ceil(top_fraction * e.numel())))
+        return torch.topk(e, k, sorted=False).values.mean() if e.numel() else errors.sum() * 0.0
+    # With a mask the count is data dependent. Rather than gather the valid pixels (a host
+    # read of their number, a device sync on CUDA), sort all of them with the invalid ones
+    # last and average the first k = ceil(top_fraction * valid) of that order.
+    valid = mask.reshape(-1).bool()
+    order = torch.sort(torch.where(valid, e.detach(), torch.full_like(e, -torch.inf)), descending=True).indices
+    n = valid.sum()
+    k = torch.ceil(top_fraction * n.to(e.dtype))
+    take = torch.arange(e.numel(), device=e.device) < k
+    return (e[order] * take).sum() / k.clamp_min(1.0)
 
 
 def ranked_normal_loss(

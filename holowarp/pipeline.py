@@ -21,7 +21,7 @@ from holowarp.config import GaussianStep, MeshBlock, Prune, ReconConfig
 from holowarp.device import resolve_device
 from holowarp.fileio import atomic_write_json, check_output_dir
 from holowarp.preflight import ReconstructionError, prepare_dataset
-from holowarp.progress import Bars, say
+from holowarp.progress import Bars, LossBuffer, say
 from holowarp.report import finish_run, peak_rss_mb
 from holowarp.runstate import Checkpoint, HistoryLog, Phase, RunState, check_resume
 from holowarp.stages.gaussian_init import train_gs2d
@@ -90,10 +90,12 @@ class _Run:
             self.model = TetGaussians.from_state_dict(ckpt.model, device=self.device)
         self.bars = Bars(progress)
         self.history = HistoryLog(self.out, keep_lines=self.state.history_lines)
+        self.losses = LossBuffer(self.history.append)  # main-loop terms, read every LOG_EVERY steps
 
     def save(self):
         st = self.state
         st.elapsed = self.seconds_before + (time.perf_counter() - self._t0)
+        self.losses.flush()
         st.history_lines = self.history.flush()
         Checkpoint(self.cfg.to_dict(), str(self.dataset_path) if self.dataset_path else None, st,
                    None if self.model is None else self.model.state_dict(),
@@ -137,10 +139,12 @@ class _Run:
             if isinstance(ev, GaussianStep):
                 self.on_step(ev)
             elif ev.key not in self.state.done:
+                self.losses.flush()
                 self.bars.close("topology", "gaussian")
                 self.on_prune(ev) if isinstance(ev, Prune) else self.on_mesh_block(ev)
                 self.state.done.append(ev.key)
                 self.save()
+        self.losses.flush()
         self.bars.close("topology", "gaussian")
 
     def on_prune(self, ev: Prune):
@@ -181,10 +185,10 @@ class _Run:
         with self.state.timed(ev.phase, 1):
             terms = gaussian_step(self.model, self.ds, view, self.cfg.topology, self.opts, topology_phase=topo,
                                   edges=self.edges, tensors=self.tensors)
-        self.history.append(ev.phase, {"iter": ev.iteration, **terms})
+        last = (self.losses.add(ev.phase, {"iter": ev.iteration}, terms) or [(None, None)])[-1][1]
         total, start = (sch.topology_until, 0) if topo else (sch.main_iters - sch.topology_until, sch.topology_until)
-        self.bars.advance(ev.phase, total, ev.iteration - start, loss=f"{terms['loss']:.4f}", rgb=f"{terms['rgb']:.4f}",
-                          mask=f"{terms['mask']:.4f}", tets=self.model.num_tets)
+        self.bars.advance(ev.phase, total, ev.iteration - start, **({} if last is None else dict(
+            loss=f"{last['loss']:.4f}", rgb=f"{last['rgb']:.4f}", mask=f"{last['mask']:.4f}", tets=self.model.num_tets)))
         self.state.main_iter = ev.iteration + 1
         if self.state.main_iter % self.cfg.checkpoint_every == 0:
             self.save()

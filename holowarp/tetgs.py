@@ -140,8 +140,9 @@ class TetGaussians:
             self.scales(),
             self.opacities(),
             self.colors(),
-            torch.as_tensor(viewmat, dtype=torch.float32, device=self.device),
-            torch.as_tensor(K, dtype=torch.float32, device=self.device),
+            # The rasteriser reads the camera on the host: keep it there (float64).
+            torch.as_tensor(viewmat, dtype=torch.float64),
+            torch.as_tensor(K, dtype=torch.float64),
             int(width),
             int(height),
             background=background,

@@ -32,12 +32,15 @@ __all__ = [
     "biharmonic_forward_kernel",
     "biharmonic_backward_kernel",
     "inversion_penalty_kernel",
+    "tet_pass_kernel",
+    "signed_volume_kernel",
     "hc_umbrella_kernel",
     "hc_face_normal_kernel",
     "hc_target_kernel",
     "hc_energy_kernel",
     "eikonal_kernel",
     "smoothness_kernel",
+    "phi_edge_kernel",
     "scale_vec3_kernel",
 ]
 
@@ -164,6 +167,53 @@ def inversion_penalty_kernel(
     cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
     dE_dd = -p * wp.pow(v, p - type(p)(1.0))
     _scatter_ds_grad(grad_x, t, (cof * dE_dd) * wp.transpose(Dinv))
+
+
+@wp.kernel(enable_backward=False)
+def tet_pass_kernel(
+    x: wp.array(dtype=Any),  # [N] vec3
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    dm_inv: wp.array(dtype=Any),  # [M] mat33
+    p: Any,  # inversion exponent, >= 1
+    with_grad: int,
+    F: wp.array(dtype=Any),  # [M] mat33, out (read by biharmonic_forward_kernel)
+    inv_energy: wp.array(dtype=Any),  # [M], out: max(-det F, 0)^p
+    inv_grad_x: wp.array(dtype=Any),  # [N] vec3, accumulated d inversion / d x when with_grad
+):
+    # One pass over the tets for everything that needs F alone: F itself (for the
+    # bi-harmonic term, whose Laplacian needs the neighbours' F and so a second pass), det F
+    # and the inversion penalty with its gradient. Same arithmetic as
+    # deformation_gradient_kernel and inversion_penalty_kernel.
+    e = wp.tid()
+    t = tets[e]
+    Dinv = dm_inv[e]
+    Fe = _ds_matrix(x, t) * Dinv
+    F[e] = Fe
+    d = wp.determinant(Fe)
+    zero = type(d)(0.0)
+    if d >= zero:
+        inv_energy[e] = zero
+        return
+    v = -d
+    inv_energy[e] = wp.pow(v, p)
+    if with_grad == 0:
+        return
+    Ft = wp.transpose(Fe)
+    cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
+    dE_dd = -p * wp.pow(v, p - type(p)(1.0))
+    _scatter_ds_grad(inv_grad_x, t, (cof * dE_dd) * wp.transpose(Dinv))
+
+
+@wp.kernel(enable_backward=False)
+def signed_volume_kernel(
+    x: wp.array(dtype=Any),  # [N] vec3
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    vol: wp.array(dtype=Any),  # [M], out: (b - a) . ((c - a) x (d - a)) / 6
+):
+    e = wp.tid()
+    t = tets[e]
+    a = x[t[0]]
+    vol[e] = wp.dot(x[t[1]] - a, wp.cross(x[t[2]] - a, x[t[3]] - a)) / type(a[0])(6.0)
 
 
 # --- HC-Laplacian (Vollmer et al. 1999) on the boundary surface -------------------------
@@ -333,6 +383,47 @@ def smoothness_kernel(
 
 
 @wp.kernel(enable_backward=False)
+def phi_edge_kernel(
+    phi: wp.array(dtype=Any),  # [N]
+    x: wp.array(dtype=Any),  # [N] vec3 (constant: no gradient)
+    edges: wp.array(dtype=wp.vec2i),  # [E]
+    inv_count: Any,  # 1 / E (both losses are means)
+    with_grad: int,
+    eik: wp.array(dtype=Any),  # [E], out: (|dphi| / l - 1)^2
+    smooth: wp.array(dtype=Any),  # [E], out: dphi^2
+    grad_eik: wp.array(dtype=Any),  # [N], accumulated d mean(eik) / d phi
+    grad_smooth: wp.array(dtype=Any),  # [N], accumulated d mean(smooth) / d phi
+):
+    # The eikonal and smoothness terms of the topology phase in one pass over the edges
+    # (same arithmetic as eikonal_kernel and smoothness_kernel), with x held constant.
+    k = wp.tid()
+    uv = edges[k]
+    u = uv[0]
+    v = uv[1]
+    dphi = phi[u] - phi[v]
+    zero = type(inv_count)(0.0)
+    one = type(inv_count)(1.0)
+    l = wp.max(wp.length(x[u] - x[v]), type(inv_count)(1.0e-12))
+    r = wp.abs(dphi) / l - one
+    eik[k] = r * r
+    smooth[k] = dphi * dphi
+    if with_grad == 0:
+        return
+    two = type(inv_count)(2.0)
+    sgn = zero
+    if dphi > zero:
+        sgn = one
+    elif dphi < zero:
+        sgn = -one
+    gp = two * r * inv_count * sgn / l
+    wp.atomic_add(grad_eik, u, gp)
+    wp.atomic_sub(grad_eik, v, gp)
+    gs = two * dphi * inv_count
+    wp.atomic_add(grad_smooth, u, gs)
+    wp.atomic_sub(grad_smooth, v, gs)
+
+
+@wp.kernel(enable_backward=False)
 def scale_vec3_kernel(
     src: wp.array(dtype=Any),  # [N] vec3
     scale: wp.array(dtype=Any),  # [1]
@@ -359,12 +450,15 @@ def _register_overloads():
         wp.overload(biharmonic_forward_kernel, [aM, a4, aT, aM, aT])
         wp.overload(biharmonic_backward_kernel, [a4, a4, aT, aM, aM, aT, aV])
         wp.overload(inversion_penalty_kernel, [aV, a4, aM, T, wp.int32, aT, aV])
+        wp.overload(tet_pass_kernel, [aV, a4, aM, T, wp.int32, aM, aT, aV])
+        wp.overload(signed_volume_kernel, [aV, a4, aT])
         wp.overload(hc_umbrella_kernel, [aV, aV, ai, ai, ai, T, aV, aV])
         wp.overload(hc_face_normal_kernel, [aV, a3, a3, aV])
         wp.overload(hc_target_kernel, [aV, aV, ai, ai, aV, T, aV, aV])
         wp.overload(hc_energy_kernel, [aV, ai, aV, aV, T, wp.int32, aT, aV])
         wp.overload(eikonal_kernel, [aT, aV, a2, T, wp.int32, aT, aT, aV])
         wp.overload(smoothness_kernel, [aT, a2, T, wp.int32, aT, aT])
+        wp.overload(phi_edge_kernel, [aT, aV, a2, T, wp.int32, aT, aT, aT, aT])
         wp.overload(scale_vec3_kernel, [aV, aT, aV])
 
 

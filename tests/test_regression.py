@@ -6,10 +6,13 @@ at the start of the main loop, then resumed through the main loop (topology phas
 Gaussian phase, mesh blocks), cleanup and export. The hash covers the final vertex positions
 (float64 of the float32 optimisation) and the tets.
 
-The recorded hash was produced by the code before the layer redesign (commit 8944634, with
-an equivalent old-format checkpoint; the script is in the redesign's closing note): the
-redesign moved code, not numbers. Change it only with a change that is meant to change the
-optimisation's numbers, and say so in that commit.
+The first recorded hash came from the code before the layer redesign (commit 8944634, with
+an equivalent old-format checkpoint): the redesign moved code, not numbers. The speed work
+of issue 17 changed the rounding on purpose (the surfel rasteriser reads float64 cameras
+instead of float32 copies, tet volumes are triple products instead of LU determinants, and
+masked means and ranked losses are computed without boolean gathers), so the hash was
+recorded again; a 32² run keeps 250 tets instead of 253. Change it only with a change
+that is meant to change the optimisation's numbers, and say so in that commit.
 """
 
 from __future__ import annotations
@@ -22,8 +25,8 @@ import pytest
 import trimesh
 
 #: sha256 of (vertices as <f8, tets as <i8) of ``tetmesh.vtu`` after the run below.
-RECORDED_HASH = "84abf6ecf8d773eb4acccf2b778b814ff049490715cdd9fdcac41b8ebe339f9c"
-RECORDED_SIZE = (253, 129)  # tets, vertices
+RECORDED_HASH = "819d2d92bd28c236679407a990f0fc4e331af8838bea13010225b8095d59390b"
+RECORDED_SIZE = (250, 129)  # tets, vertices
 
 
 @pytest.fixture(scope="module")
@@ -57,6 +60,6 @@ def test_a_fixed_start_gives_the_recorded_mesh(torus_data, tmp_path, one_torch_t
     report = reconstruct(torus_data, out, config=cfg, resume=True, progress=False)
     m = read_tetmesh(out / "tetmesh.vtu")
     digest = hashlib.sha256(m.vertices.astype("<f8").tobytes() + m.tets.astype("<i8").tobytes()).hexdigest()
-    assert (m.num_tets, m.num_vertices) == RECORDED_SIZE
     assert report["genus"] == 1 and report["components"] == 1
-    assert digest == RECORDED_HASH
+    got = (m.num_tets, m.num_vertices, digest)
+    assert got == (*RECORDED_SIZE, RECORDED_HASH), f"the run gave {got}"

@@ -310,8 +310,8 @@ def test_reference_in_checkpointed_pixel_chunks_matches_the_single_pass(rng):
 
 
 def test_threaded_launches_give_the_single_thread_images_and_gradients(rng):
-    """The forward slices write disjoint pixels (bit-identical); the backward slices sum
-    per-slice gradient buffers, equal to one launch up to float32 summation order."""
+    """The forward slices write disjoint pixels; the backward pieces sum per-piece gradient
+    buffers in a fixed order whatever the thread count: both are bit-identical."""
     from holowarp.device import cpu_threads, set_cpu_threads
 
     n, res = 600, 64
@@ -334,7 +334,5 @@ def test_threaded_launches_give_the_single_thread_images_and_gradients(rng):
             runs.append(([out[k].detach() for k in ("rgb", "alpha", "depth", "normal")], grads))
     finally:
         set_cpu_threads(before)
-    for a, b in zip(runs[0][0], runs[1][0]):
+    for a, b in zip(runs[0][0] + list(runs[0][1]), runs[1][0] + list(runs[1][1])):
         assert torch.equal(a, b)
-    for a, b in zip(runs[0][1], runs[1][1]):
-        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)

@@ -365,3 +365,69 @@ def test_hand_written_backward_passes_warp_gradcheck(setup):
     x_wp = wp.array(x.numpy(), dtype=wp.vec3d, requires_grad=True)
     assert warp.autograd.gradcheck(energy, inputs=[x_wp], eps=1e-6, atol=1e-7, rtol=1e-6,
                                  raise_exception=False, show_summary=False)
+
+
+# --- fused passes (issue 17): the same values and gradients as the separate energies -----
+
+
+@pytest.mark.parametrize("p", [2.0, 3.5])
+def test_fused_biharmonic_and_inversion_match_references_and_finite_differences(setup, rng, p):
+    mesh, rest, x, energies = setup
+    x = x.clone()
+    x[5] += torch.tensor([0.0, 0.6, -0.7])  # invert a few tets so both terms are active
+    x[20] += torch.tensor([0.5, 0.0, 0.4])
+    w_bih, w_inv = rng.uniform(0.5, 2.0, size=2)
+    e_bih, e_inv = energies.biharmonic_and_inversion(x, p)
+    assert e_inv.item() > 0
+    assert e_bih.item() == pytest.approx(ref.biharmonic_ref(x, mesh.tets, rest, energies.weights).item(), rel=1e-12)
+    assert e_inv.item() == pytest.approx(ref.inversion_penalty_ref(x, mesh.tets, rest, p).item(), rel=1e-12)
+
+    def fused(z):
+        b, i = energies.biharmonic_and_inversion(z, p)
+        return w_bih * b + w_inv * i
+
+    def separate(z):
+        return w_bih * ref.biharmonic_ref(z, mesh.tets, rest, energies.weights) + w_inv * ref.inversion_penalty_ref(
+            z, mesh.tets, rest, p)
+
+    g = _analytic_grad(fused, x)
+    torch.testing.assert_close(g, _analytic_grad(separate, x), rtol=1e-10, atol=1e-12)
+    assert _rel_err(g, _fd_grad(fused, x)) < FD_TOL
+    # only one of the two outputs in the loss: the other gets no gradient
+    gb = _analytic_grad(lambda z: energies.biharmonic_and_inversion(z, p)[0], x)
+    torch.testing.assert_close(gb, _analytic_grad(energies.biharmonic, x), rtol=1e-10, atol=1e-12)
+
+
+def test_signed_volumes_match_numpy_triple_products(setup, rng):
+    mesh, _, x, _ = setup
+    tets = torch.as_tensor(np.array(mesh.tets, dtype=np.int32))
+    v = x.numpy()
+    t = np.array(mesh.tets)
+    want = np.einsum("ij,ij->i", v[t[:, 1]] - v[t[:, 0]], np.cross(v[t[:, 2]] - v[t[:, 0]], v[t[:, 3]] - v[t[:, 0]])) / 6
+    np.testing.assert_allclose(ops.signed_volumes(x, tets).numpy(), want, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(ops.signed_volumes(x.float(), tets).numpy(), want, rtol=1e-4, atol=1e-7)
+    swapped = tets[:, [1, 0, 2, 3]].contiguous()  # odd permutation: the sign flips
+    np.testing.assert_allclose(ops.signed_volumes(x, swapped).numpy(), -want, rtol=1e-12, atol=1e-15)
+
+
+def test_fused_eikonal_and_smoothness_match_the_separate_losses_and_finite_differences(setup, rng):
+    mesh, _, x, _ = setup
+    edges = torch.as_tensor(np.array(mesh.edges()))
+    phi = torch.tensor(rng.normal(scale=0.3, size=mesh.num_vertices))
+    a, b = rng.uniform(0.1, 2.0, size=2)
+    l_eik, l_smooth = ops.phi_edge_losses(phi, edges, x)
+    assert l_eik.item() == pytest.approx(ref.eikonal_ref(phi, edges, x).item(), rel=1e-12)
+    assert l_smooth.item() == pytest.approx(ref.smoothness_ref(phi, edges).item(), rel=1e-12)
+
+    def fused(p):
+        e, s = ops.phi_edge_losses(p, edges, x)
+        return a * e + b * s
+
+    g = _analytic_grad(fused, phi)
+    want = _analytic_grad(lambda p: a * ref.eikonal_ref(p, edges, x) + b * ref.smoothness_ref(p, edges), phi)
+    torch.testing.assert_close(g, want, rtol=1e-10, atol=1e-12)
+    assert _rel_err(g, _fd_grad(fused, phi)) < FD_TOL
+    # float32 phi with float32 positions, as the topology phase runs it
+    e32, s32 = ops.phi_edge_losses(phi.float(), edges, x.float())
+    assert e32.item() == pytest.approx(l_eik.item(), rel=1e-5)
+    assert s32.item() == pytest.approx(l_smooth.item(), rel=1e-5)

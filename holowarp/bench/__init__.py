@@ -12,6 +12,8 @@ here, never in timed tests.
 - ``quality``: reconstruction quality against the visual hull on the concavity suite.
 - ``improve``: the element-improvement stage on a 200k-tet mesh with planted slivers.
 - ``load``: loading a 49-view 1600x1200 NeuS/IDR capture at 128 px (target: under 10 s).
+- ``pipeline``: per phase of a short fast run, ms per iteration, kernel/torch/host shares,
+  syncs and the overhead factor over the rasteriser alone.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import time
 
 __all__ = ["BENCHMARKS", "median_ms", "peak_rss_mb"]
 
-BENCHMARKS = ("tetmesh", "raster", "mesh", "sim", "eval", "improve", "quality", "load")
+BENCHMARKS = ("tetmesh", "raster", "mesh", "sim", "eval", "improve", "quality", "load", "pipeline")
 
 
 def median_ms(fn, *, repeat: int = 5, warmup: int = 1) -> float:

@@ -14,7 +14,7 @@ import warp as wp
 
 from holowarp.device import cpu_threads, init_warp
 
-__all__ = ["wp_device", "to_wp", "torch_stream", "thread_chunks", "run_chunks"]
+__all__ = ["wp_device", "to_wp", "torch_stream", "thread_chunks", "run_chunks", "CPU_PIECES"]
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_SIZE = 0
@@ -50,15 +50,20 @@ def torch_stream(t: torch.Tensor):
     return contextlib.nullcontext()
 
 
-def thread_chunks(total: int, device: str, *, align: int = 256, per_thread: int = 4) -> list[tuple[int, int]]:
-    """``[(offset, count), ...]`` covering ``range(total)`` in pieces of whole ``align``-thread
-    blocks: one piece on CUDA or with one CPU thread, else ``per_thread`` pieces per thread
-    (several per thread balance tiles of unequal cost)."""
-    n = cpu_threads()
-    if device != "cpu" or n == 1 or total <= align:
+#: Pieces a CPU launch is cut into (:func:`thread_chunks`): fixed, so that launches whose
+#: pieces accumulate into their own buffers sum them in the same order on any thread count.
+CPU_PIECES = 8
+
+
+def thread_chunks(total: int, device: str, *, align: int = 256, always: bool = False) -> list[tuple[int, int]]:
+    """``[(offset, count), ...]`` covering ``range(total)`` in :data:`CPU_PIECES` pieces of
+    whole ``align``-thread blocks (several per thread balance tiles of unequal cost). One
+    piece on CUDA, and on one CPU thread unless ``always``: launches that sum per-piece
+    buffers pass ``always=True`` so that their result never depends on the thread count."""
+    if device != "cpu" or total <= align or (cpu_threads() == 1 and not always):
         return [(0, total)]
     blocks = -(-total // align)
-    pieces = min(blocks, n * per_thread)
+    pieces = min(blocks, CPU_PIECES)
     edges = [round(blocks * k / pieces) * align for k in range(pieces + 1)]
     edges[-1] = total
     return [(a, b - a) for a, b in zip(edges[:-1], edges[1:]) if b > a]
@@ -69,11 +74,11 @@ def run_chunks(fn, chunks, *, kernel=None, device: str = "cpu") -> list:
     several (Warp releases the GIL while a CPU kernel runs); results in chunk order.
     ``kernel``'s module is loaded first, so no two threads ever compile or load it."""
     global _POOL, _POOL_SIZE
-    if len(chunks) == 1:
-        return [fn(*chunks[0])]
+    n = cpu_threads()
+    if len(chunks) == 1 or n == 1:
+        return [fn(*c) for c in chunks]
     if kernel is not None:
         kernel.module.load(wp.get_device(device))
-    n = cpu_threads()
     if _POOL is None or _POOL_SIZE != n:
         if _POOL is not None:
             _POOL.shutdown(wait=True)

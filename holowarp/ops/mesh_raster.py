@@ -152,7 +152,7 @@ class _RasterizeMesh(torch.autograd.Function):
         winner = torch.empty((H, W), dtype=torch.int32, device=tdev)
         normal = torch.empty((H, W, 3), dtype=torch.float32, device=tdev)
         face_id_wp = to_wp(face_id.view(-1))
-        bands = thread_chunks(H, dev, align=tile_size, per_thread=2)
+        bands = thread_chunks(H, dev, align=tile_size)
         r_in = [tile_offsets, tile_counts, tile_faces, f["edge_eq"], f["inv_z"], f["inv_area2"], f["fnormal"], W,
                 tile_size, tiles_x]
         r_out = [to_wp(depth.view(-1)), face_id_wp, to_wp(normal.view(-1, 3), wp.vec3)]
@@ -198,7 +198,7 @@ class _RasterizeMesh(torch.autograd.Function):
             wp.launch(K_.raster_backward_kernel, dim=(n, W), inputs=b_in + [r0], outputs=[g_uv, g_fn], device=dev)
             return wp.to_torch(g_uv), wp.to_torch(g_fn)
 
-        parts = run_chunks(band, thread_chunks(H, dev, align=8, per_thread=2), kernel=K_.raster_backward_kernel,
+        parts = run_chunks(band, thread_chunks(H, dev, align=8, always=True), kernel=K_.raster_backward_kernel,
                            device=dev)
         g_uv_t, g_fn_t = parts[0]
         for a, b in parts[1:]:

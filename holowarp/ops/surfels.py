@@ -183,7 +183,8 @@ def _backward_launches(bins, bg, width: int, height: int, n: int, like: torch.Te
         wp.launch(K_.rasterize_backward, dim=cnt, inputs=ins + [off] + pixel_inputs, outputs=outs, device=dev)
         return bufs
 
-    parts = run_chunks(launch, thread_chunks(total, dev, align=K_.TILE_SIZE * K_.TILE_SIZE), kernel=K_.rasterize_backward,
+    parts = run_chunks(launch, thread_chunks(total, dev, align=K_.TILE_SIZE * K_.TILE_SIZE, always=True),
+                       kernel=K_.rasterize_backward,
                        device=dev)
     out = parts[0]
     for more in parts[1:]:

@@ -28,10 +28,13 @@ __all__ = [
     "deformation_gradients",
     "biharmonic_energy",
     "inversion_penalty",
+    "tet_energies",
+    "signed_volumes",
     "hc_targets",
     "hc_energy",
     "eikonal_loss",
     "smoothness_loss",
+    "phi_edge_losses",
 ]
 
 _TYPES = {
@@ -227,6 +230,73 @@ def inversion_penalty(x, tets, dm_inv, p: float = 2.0) -> torch.Tensor:
     if not need:
         return value
     return _fused(value, [(x, grad_x)])
+
+
+# --- fused pass: bi-harmonic + inversion from one F ---------------------------------------
+
+
+class _TetEnergies(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, tets, dm_inv, adjacency, weights, p):
+        T, V, M = _types(x)
+        dev = wp_device(x)
+        m = tets.shape[0]
+        F = torch.empty((m, 3, 3), dtype=x.dtype, device=x.device)
+        LF = torch.empty_like(F)
+        e_bih = torch.empty(m, dtype=x.dtype, device=x.device)
+        e_inv = torch.empty(m, dtype=x.dtype, device=x.device)
+        need = bool(ctx.needs_input_grad[0])  # grad mode is off inside forward
+        g_inv = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
+        tets_wp, dm_wp, F_wp = _i(tets, wp.vec4i), _mat(dm_inv, M), _mat(F, M)
+        with torch_stream(x):
+            wp.launch(K_.tet_pass_kernel, dim=m, inputs=[_vec(x, V), tets_wp, dm_wp, T(p), int(need)],
+                      outputs=[F_wp, to_wp(e_inv), _vec(g_inv, V)], device=dev)
+            wp.launch(K_.biharmonic_forward_kernel, dim=m, inputs=[F_wp, _i(adjacency, wp.vec4i), to_wp(weights)],
+                      outputs=[_mat(LF, M), to_wp(e_bih)], device=dev)
+        ctx.save_for_backward(tets, adjacency, weights, LF, dm_inv, g_inv)
+        ctx.num_vertices = x.shape[0]
+        return e_bih.sum(), e_inv.sum()
+
+    @staticmethod
+    def backward(ctx, g_bih, g_inv_out):
+        tets, adjacency, weights, LF, dm_inv, g_inv = ctx.saved_tensors
+        T, V, M = _types(LF)
+        grad_x = torch.zeros((ctx.num_vertices, 3), dtype=LF.dtype, device=LF.device)
+        if g_bih is not None:
+            g = g_bih.reshape(1).to(LF.dtype).contiguous()
+            with torch_stream(LF):
+                wp.launch(K_.biharmonic_backward_kernel, dim=tets.shape[0],
+                          inputs=[_i(tets, wp.vec4i), _i(adjacency, wp.vec4i), to_wp(weights), _mat(LF, M),
+                                  _mat(dm_inv, M), to_wp(g)], outputs=[_vec(grad_x, V)], device=wp_device(LF))
+        if g_inv_out is not None and g_inv.shape == grad_x.shape:
+            grad_x += g_inv * g_inv_out
+        return grad_x, None, None, None, None, None
+
+
+def tet_energies(x, tets, dm_inv, adjacency, weights, p: float = 2.0):
+    """``(biharmonic_energy(...), inversion_penalty(..., p))`` from one pass over the tets:
+    F and det F are computed once (kernel ``tet_pass_kernel``), the bi-harmonic Laplacian
+    reads that F. Same values and gradients as the two functions called separately."""
+    _check_x(x)
+    p = float(p)
+    if not p >= 1.0:
+        raise ValueError(f"tet_energies: p must be >= 1, got {p}")
+    return _TetEnergies.apply(x.contiguous(), tets.contiguous(), dm_inv.to(x.dtype).contiguous(),
+                              adjacency.contiguous(), weights.to(x.dtype).contiguous(), p)
+
+
+def signed_volumes(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
+    """Signed tet volumes (M,) ``(b - a) . ((c - a) x (d - a)) / 6`` of positions ``x``
+    (N, 3) float32/float64; not differentiable (a check, not an energy)."""
+    _check_x(x)
+    T, V, M = _types(x)
+    x = x.detach().contiguous()
+    vol = torch.empty(tets.shape[0], dtype=x.dtype, device=x.device)
+    if tets.shape[0]:
+        with torch_stream(x):
+            wp.launch(K_.signed_volume_kernel, dim=tets.shape[0], inputs=[_vec(x, V), _i(tets.contiguous(), wp.vec4i)],
+                      outputs=[to_wp(vol)], device=wp_device(x))
+    return vol
 
 
 # --- HC-Laplacian -----------------------------------------------------------------------
@@ -427,3 +497,34 @@ def smoothness_loss(phi: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
     if not need:
         return value
     return _fused(value, [(phi, g)])
+
+
+def phi_edge_losses(phi: torch.Tensor, edges: torch.Tensor, x: torch.Tensor):
+    """``(eikonal_loss(phi, edges, x), smoothness_loss(phi, edges))`` from one pass over the
+    edges (kernel ``phi_edge_kernel``), differentiable in ``phi`` only: ``x`` is held
+    constant, as in the topology phase (method.md §5)."""
+    _check_x(x, "phi_edge_losses: x")
+    _check_edges(edges, x.shape[0], "phi_edge_losses")
+    if phi.ndim != 1 or phi.shape[0] != x.shape[0]:
+        raise ValueError(f"phi_edge_losses: phi must have shape ({x.shape[0]},), got {tuple(phi.shape)}")
+    T, V, M = _types(x)
+    phi_c = phi.to(x.dtype).contiguous()
+    E = edges.shape[0]
+    if E == 0:
+        z = phi_c.sum() * 0.0
+        return z, z
+    eik = torch.empty(E, dtype=x.dtype, device=x.device)
+    smooth = torch.empty(E, dtype=x.dtype, device=x.device)
+    need = phi.requires_grad and torch.is_grad_enabled()
+    n = phi_c.shape[0] if need else 1
+    g_eik = torch.zeros(n, dtype=x.dtype, device=x.device)
+    g_smooth = torch.zeros(n, dtype=x.dtype, device=x.device)
+    with torch_stream(x):
+        wp.launch(K_.phi_edge_kernel, dim=E,
+                  inputs=[to_wp(phi_c), _vec(x.detach().contiguous(), V), _i(edges.contiguous(), wp.vec2i), T(1.0 / E),
+                          int(need)],
+                  outputs=[to_wp(eik), to_wp(smooth), to_wp(g_eik), to_wp(g_smooth)], device=wp_device(x))
+    l_eik, l_smooth = eik.mean(), smooth.mean()
+    if not need:
+        return l_eik, l_smooth
+    return _fused(l_eik, [(phi_c, g_eik)]), _fused(l_smooth, [(phi_c, g_smooth)])

@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from holowarp.config import GeometryConfig
-from holowarp.errors import RunError
+from holowarp.progress import LossBuffer
 from holowarp.tetgs import TetGaussians
 
 __all__ = ["BlockResume", "GeometryBlock", "GeometryState", "mesh_lambda", "run_geometry_block", "signed_volumes_t", "revert_inverting_moves"]
@@ -52,38 +52,42 @@ def mesh_lambda(t: int, total: int) -> float:
 
 
 def signed_volumes_t(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
-    """Signed tet volumes (M,) of positions x (N, 3): det[b-a, c-a, d-a] / 6."""
-    a, b, c, d = (x[tets[:, i]] for i in range(4))
-    return torch.linalg.det(torch.stack([b - a, c - a, d - a], dim=-1)) / 6.0
+    """Signed tet volumes (M,) of positions x (N, 3): (b-a) . ((c-a) x (d-a)) / 6 (one Warp pass)."""
+    from holowarp.ops.tet_energy import signed_volumes
+
+    return signed_volumes(x, tets)
 
 
 def revert_inverting_moves(
-    x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, *, floor=None, max_rounds: int = 20
-) -> int:
+    x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, *, floor=None, max_rounds: int = 20,
+    old_volumes: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Undo, in place, the moves of vertices whose tets this step inverted or collapsed.
 
-    A tet whose volume at ``x_old`` was above its ``floor`` (M,) (default 0) and is not at
-    ``x_new`` gets its four vertices put back to ``x_old``; repeated until no tet newly
-    crosses its floor (reverting one tet can push a neighbour under), with a full revert as
-    the last resort. A positive floor (a fraction of each tet's rest volume) keeps slivers
-    from forming: their huge deformation gradients would otherwise dominate the energies.
+    A tet whose volume at ``x_old`` (or ``old_volumes``, (M,), when the caller has them) was
+    above its ``floor`` (M,) (default 0) and is not at ``x_new`` gets its four vertices put
+    back to ``x_old``; repeated until no tet newly crosses its floor (reverting one tet can
+    push a neighbour under), with a full revert as the last resort. A positive floor (a
+    fraction of each tet's rest volume) keeps slivers from forming: their huge deformation
+    gradients would otherwise dominate the energies.
 
     Returns:
-        the number of vertices reverted.
+        the number of vertices reverted, as a 0-dim tensor (read it when convenient: on
+        CUDA each read is a sync). Each round costs one host read of "any tet bad?".
     """
     with torch.no_grad():
         f = 0.0 if floor is None else floor
-        was_ok = signed_volumes_t(x_old, tets) > f
+        was_ok = (signed_volumes_t(x_old, tets) if old_volumes is None else old_volumes) > f
         reverted = torch.zeros(x_new.shape[0], dtype=torch.bool, device=x_new.device)
         for _ in range(max_rounds):
             bad = was_ok & ~(signed_volumes_t(x_new, tets) > f)
             if not bool(bad.any()):
-                return int(reverted.sum())
+                return reverted.sum()
             idx = tets[bad].reshape(-1)
             x_new[idx] = x_old[idx]
             reverted[idx] = True
         x_new.copy_(x_old)
-        return int(x_new.shape[0])
+        return torch.tensor(x_new.shape[0], device=x_new.device)
 
 
 @dataclass
@@ -102,19 +106,6 @@ class BlockResume:
     step: int
     rest: np.ndarray
     opt: dict
-
-
-def _gs_normals(model: TetGaussians, dataset, view: int, width: int, height: int, cache: dict, rest: torch.Tensor):
-    """Frozen surfels' rendered normal (H, W, 3, unit) and coverage (H, W) of one view, with
-    the surfels at the block's rest positions (so a resumed block sees the same picture)."""
-    if view not in cache:
-        with torch.no_grad():
-            out = model.render(dataset.viewmats[view], dataset.K[view], width, height, vertices=rest)
-            n = out["normal"]
-            n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-            cache[view] = (n.to(torch.float16), out["alpha"].to(torch.float16))
-    n, a = cache[view]
-    return n.float(), a.float()
 
 
 class GeometryBlock:
@@ -160,9 +151,24 @@ class GeometryBlock:
             self.floor = config.min_volume_fraction * signed_volumes_t(self.rest, model.tets).clamp_min(0)
         self.reverted = 0
 
+    def surfel_normals(self, view: int):
+        """The frozen surfels' rendered normal (H, W, 3, unit) and coverage (H, W) in ``view``,
+        with the surfels at the block's rest positions (so a resumed block sees the same
+        picture); rendered once per view and block, kept in float16."""
+        if view not in self.cache:
+            ds = self.dataset
+            with torch.no_grad():
+                out = self.model.render(ds.viewmats[view], ds.K[view], ds.width, ds.height, vertices=self.rest)
+                n = out["normal"]
+                n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+                self.cache[view] = (n.to(torch.float16), out["alpha"].to(torch.float16))
+        n, a = self.cache[view]
+        return n.float(), a.float()
+
     def step(self, k: int, t: int, seed: int) -> dict:
         """Block step ``k`` (global mesh iteration ``t``) on the view drawn from
-        ``default_rng([seed, 1, t])``; returns its loss terms as floats."""
+        ``default_rng([seed, 1, t])``; returns its loss terms as detached 0-dim tensors
+        (plus ``lam`` and ``lam_cond`` as floats)."""
         from holowarp.ops import rasterize_mesh
         from holowarp.optim import cosine_lr
 
@@ -174,31 +180,25 @@ class GeometryBlock:
         H, W = ds.height, ds.width
         out = rasterize_mesh(x, self.faces, ds.viewmats[view], ds.K[view], W, H)
         l_mask = (out["alpha"] - self.masks[view]).abs().mean()
-        n_gs, a_gs = _gs_normals(self.model, ds, view, W, H, self.cache, self.rest)
-        sel = (out["alpha"] > 0) & (a_gs > 0.5)
-        if bool(sel.any()):
-            cos = (out["normal"] * n_gs).sum(-1)
-            l_norm = (1.0 - cos)[sel].mean()
-        else:
-            l_norm = x.sum() * 0.0
+        n_gs, a_gs = self.surfel_normals(view)
+        # Mean of 1 - cos over the pixels both cover; written without a boolean gather (a
+        # data-dependent shape is a host sync); no such pixel gives 0.
+        sel = ((out["alpha"] > 0) & (a_gs > 0.5)).to(x.dtype)
+        l_norm = ((1.0 - (out["normal"] * n_gs).sum(-1)) * sel).sum() / sel.sum().clamp_min(1.0)
         lam = mesh_lambda(t, self.total)
         lam_cond = 1.0 if (not cfg.two_stage_hc or k >= self.block_iters // 2) else 0.0
         l_hc = en.hc_laplacian(x, self.bf_np, lam_cond=lam_cond) / self.mean_edge**2
-        l_w = en.biharmonic(x)
         p0, p1 = cfg.barrier_p
-        l_inv = en.inversion_penalty(x, p=p0 + (p1 - p0) * (t / max(self.total - 1, 1)))
+        l_w, l_inv = en.biharmonic_and_inversion(x, p=p0 + (p1 - p0) * (t / max(self.total - 1, 1)))
         loss = (cfg.w_mask * l_mask + cfg.w_norm * l_norm + lam * (cfg.c_hc * l_hc + cfg.c_w * l_w)
                 + cfg.c_barrier * l_inv)
-        if not torch.isfinite(loss):
-            raise RunError(f"geometry step {t}: non-finite loss (mask {l_mask.item()}, norm {l_norm.item()}); "
-                           "the mesh optimisation diverged")
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         x_old = x.detach().clone()
         self.opt.step()
-        self.reverted += revert_inverting_moves(x.data, x_old, self.model.tets, floor=self.floor)
+        self.reverted = self.reverted + revert_inverting_moves(x.data, x_old, self.model.tets, floor=self.floor)
         terms = {"loss": loss, "mask": l_mask, "norm": l_norm, "hc": l_hc, "w": l_w, "inv": l_inv}
-        return {**{k_: float(v.detach()) for k_, v in terms.items()}, "lam": lam, "lam_cond": lam_cond}
+        return {**{k_: v.detach() for k_, v in terms.items()}, "lam": lam, "lam_cond": lam_cond}
 
     def finish(self) -> int:
         """Stop optimising the vertices; returns the number of inverted tets (volume <= 0)."""
@@ -247,22 +247,31 @@ def run_geometry_block(
                         rest_vertices=resume.rest if resume else None, optimizer_state=resume.opt if resume else None)
     start = resume.step if resume else 0
     t0 = time.perf_counter()
-    last = {}
+    shown = {}
+
+    def written(records):
+        # Loss values reach the host in batches (LossBuffer); show the latest on the bar.
+        if records and progress is not None:
+            r = records[-1][1]
+            progress.set_postfix(mask=f"{r['mask']:.4f}", norm=f"{r['norm']:.3f}", refresh=False)
+        if records:
+            shown.update(records[-1][1])
+
+    losses = LossBuffer(lambda _stage, rec: log(rec) if log is not None else None)
     for k in range(start, block_iters):
-        last = blk.step(k, state.mesh_iter, seed)
-        if log is not None:
-            log({"mesh_iter": state.mesh_iter, **last})
+        written(losses.add("geometry", {"mesh_iter": state.mesh_iter}, blk.step(k, state.mesh_iter, seed)))
         state.mesh_iter += 1
         if progress is not None:
             progress.update(1)
-            progress.set_postfix(mask=f"{last['mask']:.4f}", norm=f"{last['norm']:.3f}", refresh=False)
         if checkpoint is not None and checkpoint_every and (k + 1) % checkpoint_every == 0 and k + 1 < block_iters:
+            written(losses.flush())
             checkpoint(BlockResume(at, k + 1, blk.rest_np, blk.opt.state_dict()))
+    written(losses.flush())
     return {
         "steps": block_iters - start,
         "seconds": time.perf_counter() - t0,
-        "reverted_vertices": blk.reverted,
-        "final": last,
+        "reverted_vertices": int(blk.reverted),
+        "final": {k: v for k, v in shown.items() if k != "mesh_iter"},
         "inverted": blk.finish(),
         "mean_edge": blk.mean_edge,
     }

@@ -35,7 +35,6 @@ import torch
 from holowarp.camera import project_points
 from holowarp.carve import in_front_of_surface, inside_hull
 from holowarp.config import TopologyConfig
-from holowarp.errors import RunError
 from holowarp.manifold import restore_until_manifold
 from holowarp.tetgs import TetGaussians
 from holowarp.tetmesh import TetMesh
@@ -200,14 +199,20 @@ def after_first_prune(model: TetGaussians) -> None:
 
 
 class ViewTensors:
-    """The training images composited on ``background`` (N, H, W, 3), the masks (N, H, W) and
-    the optional normal maps (N, H, W, 3) on the model's device, uploaded once."""
+    """The training images composited on ``background`` (N, H, W, 3), the masks (N, H, W),
+    the optional normal maps (N, H, W, 3) and the cameras on the model's device, uploaded once."""
 
     def __init__(self, dataset, device, background=(0.0, 0.0, 0.0)):
         self.background = torch.as_tensor(background, dtype=torch.float32, device=device)
         self.images = torch.as_tensor(dataset.composite(background), device=device)
         self.masks = torch.as_tensor(dataset.masks, device=device)
         self.normals = torch.as_tensor(dataset.normals, device=device) if dataset.normals is not None else None
+        # Cameras: (N, 4, 4) and (N, 3, 3) float32 on the device for the losses, and float64
+        # on the host for the rasteriser, which reads them there (no per-step upload or read-back).
+        self.viewmats = torch.as_tensor(dataset.viewmats, dtype=torch.float32, device=device)
+        self.K = torch.as_tensor(dataset.K, dtype=torch.float32, device=device)
+        self.viewmats_host = torch.as_tensor(dataset.viewmats, dtype=torch.float64)
+        self.K_host = torch.as_tensor(dataset.K, dtype=torch.float64)
 
 
 class GaussianOptimizers:
@@ -263,13 +268,14 @@ def gaussian_step(
     edges: torch.Tensor | None,
     tensors: ViewTensors,
 ) -> dict:
-    """One main-loop step on view ``view``; returns the loss terms as floats."""
+    """One main-loop step on view ``view``; returns the loss terms as detached 0-dim tensors
+    (read them in batches: :class:`holowarp.progress.LossBuffer`, which also stops a run
+    whose loss is not finite)."""
     from holowarp import losses
 
     H, W = dataset.height, dataset.width
-    vm = torch.as_tensor(dataset.viewmats[view], dtype=torch.float32, device=model.device)
-    Kt = torch.as_tensor(dataset.K[view], dtype=torch.float32, device=model.device)
-    out = model.render(vm, Kt, W, H, background=tensors.background)
+    vm, Kt = tensors.viewmats[view], tensors.K[view]
+    out = model.render(tensors.viewmats_host[view], tensors.K_host[view], W, H, background=tensors.background)
     gt = tensors.images[view]
     m = tensors.masks[view]
     l_rgb = losses.l1_dssim_loss(out["rgb"], gt, lambda_dssim=config.dssim_weight)
@@ -281,24 +287,20 @@ def gaussian_step(
     frac = config.normal_rank_fraction
     l_normal = losses.ranked_normal_loss(out["normal"], n_depth, mask=opaque, top_fraction=frac)
     loss = config.w_rgb * l_rgb + config.w_mask * l_mask + config.w_normal * l_normal
-    terms = {"rgb": float(l_rgb.detach()), "mask": float(l_mask.detach()), "normal": float(l_normal.detach())}
+    terms = {"rgb": l_rgb, "mask": l_mask, "normal": l_normal}
     if tensors.normals is not None and config.w_prior > 0:
         prior = tensors.normals[view]
         has = opaque & (prior.norm(dim=-1) > 0.5) & (n_depth.norm(dim=-1) > 0.5)
         e = _one_minus_cos(prior, out["normal"]) + _one_minus_cos(prior, n_depth)
         l_prior = losses.ranked_loss(e, mask=has, top_fraction=frac)
         loss = loss + config.w_prior * l_prior
-        terms["prior"] = float(l_prior.detach())
+        terms["prior"] = l_prior
     if topology_phase and not model.free_opacity and edges is not None:
-        from holowarp.energies import eikonal_loss, smoothness_loss
+        from holowarp.energies import phi_edge_losses
 
-        x = model.vertices.detach()
-        l_eik = eikonal_loss(model.phi, edges, x)
-        l_smooth = smoothness_loss(model.phi, edges)
+        l_eik, l_smooth = phi_edge_losses(model.phi, edges, model.vertices.detach())
         loss = loss + config.lam_eik * l_eik + config.lam_smooth * l_smooth
-        terms.update(eik=float(l_eik.detach()), smooth=float(l_smooth.detach()))
-    if not torch.isfinite(loss):
-        raise RunError(f"main-loop step on view {view}: non-finite loss {terms}")
+        terms.update(eik=l_eik, smooth=l_smooth)
     optimizers.zero_grad()
     loss.backward()
     optimizers.step()
@@ -307,8 +309,8 @@ def gaussian_step(
         model.quats.data /= model.quats.data.norm(dim=1, keepdim=True).clamp_min(1e-12)
         lo, hi = model.kappa_clamp
         model.kappa.data.clamp_(lo / model.s, hi / model.s)
-    terms["loss"] = float(loss.detach())
-    return terms
+    terms["loss"] = loss
+    return {k: v.detach() for k, v in terms.items()}
 
 
 def _one_minus_cos(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
