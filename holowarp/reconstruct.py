@@ -34,6 +34,8 @@ def build_parser():
     p.add_argument("--edge-length", type=float, default=None, metavar="FAC",
                    help="fTetWild edge length / bbox diagonal, in (0, 1) (the resolution knob)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's)")
+    p.add_argument("--no-improve", action="store_true",
+                   help="skip the element improvement after cleanup (method.md §7b; the paper's pipeline ends at cleanup)")
     cli.add_device(p)
     cli.add_quiet(p)
     return p
@@ -62,6 +64,8 @@ def config_from_args(args):
         cfg = replace(cfg, tet_init=replace(cfg.tet_init, edge_length_fac=args.edge_length))
     if args.seed is not None:
         cfg = replace(cfg, seed=args.seed)
+    if args.no_improve:
+        cfg = replace(cfg, improve=replace(cfg.improve, enabled=False))
     return cfg
 
 

@@ -7,8 +7,11 @@ Keys (a contract other tools read): ``preset``, ``device``, ``dataset``, ``resol
 ``vertices_final``, ``components``, ``manifold``, ``genus``, ``inverted_before_cleanup``,
 ``flipped``, ``dropped``, ``cleanup``, ``inverted_ratio``, ``min_dihedral_mean``,
 ``aspect_ratio_mean``, ``prunes``, ``raw_components_max``, ``geometry_blocks``, ``stage0``,
-``psnr_test``, ``ssim_test``, ``peak_rss_mb``, ``outputs``, ``previews``, ``config``, and
-``metrics`` (method.md §9) when the dataset has a ground-truth mesh.
+``psnr_test``, ``ssim_test``, ``peak_rss_mb``, ``outputs``, ``previews``, ``config``,
+``improve`` (the element improvement's section, :func:`holowarp.stages.improve.improve`;
+``null`` when ``config.improve.enabled`` is off), and ``metrics`` (method.md §9) when the
+dataset has a ground-truth mesh. The mesh counts and qualities are those of the final mesh
+(after improvement).
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ def image_metrics(renders, gts) -> tuple[float, float, list[float]]:
 
 
 def build_report(*, config, device, data_dir, dataset, state, clean, cleanup_info, psnr, ssim, outputs, previews,
-                 metrics=None) -> dict:
+                 metrics=None, improve_info=None) -> dict:
     """The report of a finished run (``seconds_total`` and ``peak_rss_mb`` are filled in by
     the caller once everything, writing included, is done)."""
     man = clean.manifold()
@@ -87,6 +90,7 @@ def build_report(*, config, device, data_dir, dataset, state, clean, cleanup_inf
         "outputs": outputs,
         "previews": previews,
         "config": config.to_dict(),
+        "improve": improve_info,
     }
     if metrics is not None:
         report["metrics"] = metrics
@@ -116,6 +120,7 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
     clean, kept, cinfo = cleanup(model.mesh(), config.cleanup)
     model.apply_cleanup(kept, clean)
     state.add_time("cleanup", time.perf_counter() - t0, 0)
+    clean, improve_info = _improve(model, clean, config, device, state)
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -144,4 +149,19 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
                                                   device=str(device))["paths"]
         state.add_time("evaluate", time.perf_counter() - t0, 0)
     return build_report(config=config, device=device, data_dir=data_dir, dataset=dataset, state=state, clean=clean,
-                        cleanup_info=cinfo, psnr=psnr, ssim=ssim, outputs=outputs, previews=previews, metrics=metrics)
+                        cleanup_info=cinfo, psnr=psnr, ssim=ssim, outputs=outputs, previews=previews, metrics=metrics,
+                        improve_info=improve_info)
+
+
+def _improve(model, clean, config, device, state):
+    """The element improvement (method.md §7b) of the cleaned mesh, the surfels following
+    their parent tets; returns (mesh, report section or None when disabled)."""
+    if not config.improve.enabled:
+        return clean, None
+    from holowarp.stages.improve import improve
+
+    t0 = time.perf_counter()
+    mesh, parent, info = improve(clean, config.improve, device=str(device))
+    model.apply_improve(mesh, parent)
+    state.add_time("improve", time.perf_counter() - t0, 0)
+    return mesh, info

@@ -204,6 +204,34 @@ class TetGaussians:
             )
         self.tets = torch.tensor(np.array(mesh.tets), dtype=torch.int64, device=self.device)
 
+    def apply_improve(self, mesh: TetMesh, parent) -> None:
+        """Follow the element improvement (method.md §7b) that turned this model's mesh into
+        ``mesh`` and gave each output tet an input ``parent`` (K,) it derives from.
+
+        Each surfel takes its parent's colour, rotation and opacity; its scales are the
+        parent's times the ratio of the two tets' mean radii, so a split tet's surfel shrinks
+        with it (flips and smoothing change sizes a little). Vertices are ``mesh``'s; phi (not
+        used once opacities are free) is the mean over a vertex's tets of their parent's mean phi.
+        """
+        parent = torch.as_tensor(np.asarray(parent, dtype=np.int64), device=self.device)
+        tets = torch.tensor(np.array(mesh.tets), dtype=torch.int64, device=self.device)
+        if parent.shape != (tets.shape[0],) or (tets.shape[0] and (parent.min() < 0 or parent.max() >= self.num_tets)):
+            raise ValueError(f"apply_improve: parent must be ({tets.shape[0]},) ids of the model's {self.num_tets} tets")
+        x = torch.tensor(np.array(mesh.vertices), dtype=torch.float32, device=self.device)
+        P = torch.nn.Parameter
+        with torch.no_grad():
+            ratio = tet_mean_radius(x, tets) / tet_mean_radius(self.vertices.data, self.tets)[parent].clamp_min(1e-12)
+            phi_t = self.phi.data[self.tets].mean(dim=1)[parent]
+            acc = torch.zeros(x.shape[0], device=self.device).index_add_(0, tets.reshape(-1), phi_t.repeat_interleave(4))
+            cnt = torch.zeros(x.shape[0], device=self.device).index_add_(0, tets.reshape(-1), torch.ones(tets.numel(), device=self.device))
+            self.phi = P(acc / cnt.clamp_min(1.0))
+            self.vertices = P(x)
+            self.tets = tets
+            self.opacity_logit = P(self.opacity_logit.data[parent].clone())
+            self.color_logit = P(self.color_logit.data[parent].clone())
+            self.quats = P(self.quats.data[parent].clone())
+            self.log_scales = P((self.log_scales.data[parent] + torch.log(ratio.clamp_min(1e-6))[:, None]).contiguous())
+
     # ------------------------------------------------------------------ (de)serialisation
     _TENSORS = ("vertices", "tets", "phi", "kappa", "opacity_logit", "color_logit", "quats", "log_scales")
 

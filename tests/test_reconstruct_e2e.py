@@ -81,6 +81,11 @@ def test_report_accounts_for_every_scheduled_event(tiny_run):
     sizes = [report["tets_initial"]] + [p["tets_after"] for p in report["prunes"]]
     assert sizes == sorted(sizes, reverse=True)
     assert report["cleanup"]["tets_before"] == report["prunes"][-1]["tets_after"]
+    # The element improvement starts from cleanup's mesh and ends with the reported one.
+    imp = report["improve"]
+    assert imp["before"]["tets"] == report["cleanup"]["tets_after"] and imp["after"]["tets"] == report["tets_final"]
+    assert imp["after"]["min_dihedral_worst"] >= imp["before"]["min_dihedral_worst"]
+    assert imp["topology"] and st["improve"]["seconds"] > 0
 
 
 def test_loss_history_streams_one_line_per_step_and_stays_out_of_the_checkpoint(tiny_run):

@@ -23,7 +23,7 @@ from holowarp.stages.geometry import (
 from holowarp.stages.tet_init import scaled_hull
 from holowarp.carve import hull_field, inside_hull
 from holowarp.stages.topology import init_phi, prune
-from holowarp.tetgs import TetGaussians
+from holowarp.tetgs import TetGaussians, tet_mean_radius
 from holowarp.tetmesh import tetrahedralize_surface
 
 RADIUS = 0.35
@@ -332,3 +332,34 @@ def test_depth_carving_empties_a_dent_the_silhouettes_fill_and_keeps_the_solid()
     assert hull[in_dent].mean() > 0.9  # silhouettes cannot see the dent
     assert carved[in_dent & hull].mean() > 0.9  # depth does
     assert not carved[in_solid].any()
+
+
+def test_surfels_follow_the_element_improvement_through_the_parent_map(rng):
+    from holowarp.config import ImproveConfig
+    from holowarp.stages.improve import improve
+
+    mesh = box_tetmesh((3, 3, 3), (1.0, 1.0, 1.0))
+    V = mesh.vertices.copy()
+    inner = np.all((V > 0.05) & (V < 0.95), axis=1)
+    V[inner] += rng.normal(scale=0.08, size=(int(inner.sum()), 3))  # distorted interior tets to improve
+    mesh = type(mesh)(V, mesh.tets)
+    assert np.all(mesh.signed_volumes() > 0)
+    model = TetGaussians(mesh, colors=rng.uniform(0, 1, (mesh.num_tets, 3)), config=TopologyConfig(), seed=1)
+    model.reset_scales()
+    model.freeze_opacity_from_field()
+    with torch.no_grad():
+        model.opacity_logit.data = torch.tensor(rng.normal(size=mesh.num_tets), dtype=torch.float32)
+    before = {k: getattr(model, k).detach().clone() for k in ("color_logit", "quats", "opacity_logit", "log_scales")}
+    r_before = tet_mean_radius(model.vertices.detach(), model.tets)
+    out, parent, info = improve(mesh, ImproveConfig())
+    assert info["flips"] and len(parent) == out.num_tets
+    model.apply_improve(out, parent)
+    assert model.num_tets == out.num_tets and model.num_vertices == out.num_vertices
+    np.testing.assert_allclose(model.vertices.detach().numpy(), out.vertices, atol=1e-6)
+    p = torch.as_tensor(parent)
+    for k in ("color_logit", "quats", "opacity_logit"):
+        assert torch.equal(getattr(model, k).detach(), before[k][p]), k
+    ratio = tet_mean_radius(model.vertices.detach(), model.tets) / r_before[p]
+    torch.testing.assert_close(model.log_scales.detach(), before["log_scales"][p] + torch.log(ratio)[:, None])
+    with pytest.raises(ValueError, match="parent"):
+        model.apply_improve(out, parent[:-1])

@@ -79,10 +79,10 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
+from holowarp.config import ETA_HISTOGRAM_EDGES, QUALITY_MEASURES, ImproveConfig
 from holowarp.tetmesh import TET_EDGES, TET_FACES, TetMesh
 
 __all__ = [
@@ -96,12 +96,6 @@ __all__ = [
     "mean_boundary_edge",
 ]
 
-#: Quality measures understood by :func:`tet_quality` (the codes of holowarp.kernels.improve).
-QUALITY_MEASURES = {"sine": 0, "eta": 1, "sine_eta": 2}
-
-#: Fixed bin edges of the report's eta histogram: 0.01 is Newton's validate_tet_mesh warning
-#: threshold, 1 the regular tet.
-ETA_HISTOGRAM_EDGES = (0.0, 0.01, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
 
 _SIN_REGULAR = 2.0 * math.sqrt(2.0) / 3.0
 
@@ -113,113 +107,6 @@ _EDGE_PERM = np.array(
 )
 # Faces meeting at each local edge (the faces opposite the two vertices off the edge).
 _EDGE_FACES = np.array([[2, 3], [1, 3], [1, 2], [0, 3], [0, 2], [0, 1]], dtype=np.int64)
-
-
-@dataclass(frozen=True)
-class ImproveConfig:
-    """Settings of the element-improvement stage (method.md §7b, issue 13).
-
-    Attributes:
-        max_surface_move: bound on the Hausdorff distance between the boundary surfaces
-            before and after, in mean boundary edge lengths of the input (method.md §7b:
-            0.1).
-        quality: the measure every operation maximises: ``"sine"`` (smallest dihedral
-            sine; Klingner & Shewchuk's best measure for dihedral angles), ``"eta"``
-            (volume-length) or ``"sine_eta"`` (the smaller of both, the default: it drives
-            the dihedral angles like the sine and keeps Newton's eta and the aspect ratio
-            from paying for them; on bob and spot it ends with the better mean aspect and
-            twice the minimum eta of the sine alone, at the same worst dihedral).
-        min_gain: least rise of the local worst quality that counts as an improvement
-            (quality units, 1 = regular tet); keeps flips from cycling on round-off.
-        flip_threshold: only faces and edges with a tet below this quality are tried as
-            flips (0.75 covers every tet with a dihedral angle below about 45°).
-        max_ring: largest ring (tets around an interior edge) tried for edge removal;
-            Klingner & Shewchuk find rings above 7 almost never removable.
-        max_boundary_ring: largest open fan around a boundary edge tried for removal.
-        max_flip_passes: flip passes per round and kind (each applies one independent batch).
-        smooth_passes: smoothing sweeps (all colours) per round.
-        smooth_threshold: only vertices whose star has a tet below this quality are smoothed.
-        boundary_threshold: surface-moving operations (boundary flips, cap deletion,
-            boundary-vertex smoothing) are spent only on tets below this quality, so that
-            the surface budget goes to the worst elements; 0.35 is a dihedral angle of ~19°.
-        mean_guard: a flip or a smoothing step whose region's worst tet is already above
-            this quality must not lower the region's mean quality; below it, raising the
-            worst tet is all that counts (0.35, a dihedral angle of ~19°).
-        smooth_beta: soft-minimum sharpness of the smoothing objective (1/quality).
-        smooth_step: first trial step, in mean edge lengths of the vertex's star.
-        smooth_line_steps: trial steps per vertex and pass, each half the previous.
-        smooth_fd: finite-difference step of the smoothing gradient, in star edge lengths.
-        surface_samples: barycentric grid steps per triangle (``(n+1)(n+2)/2`` samples) at
-            which a boundary vertex's move is measured against the surface budget.
-        smooth_budget_share: boundary-vertex smoothing may use the surface budget only up to
-            this share of ``max_surface_move`` (1: all of it; measured on bob and spot, a
-            smaller share leaves worse caps behind, not better).
-        inside_rounds: leading rounds with no surface budget at all (module docstring).
-        feature_ratio: a boundary vertex's normal-covariance eigenvalue above this fraction
-            of the largest spans a normal direction it may not move in. It is about
-            tan²(θ/2) for a crease turning the normal by θ, so 0.15 treats creases sharper
-            than ~42° as features (slide along them only) and corners as fixed.
-        split_threshold: tets still below this quality after a round's flips and smoothing
-            get a new vertex (sliver removal); 0.2 is a dihedral angle of about 11°.
-        max_splits_fraction: at most this fraction of the tets is split per round.
-        split_smooth_passes: smoothing steps that place each new vertex before its split
-            is judged.
-        max_rounds: cap on rounds; a round that raises neither the worst nor the mean
-            quality (and splits nothing) ends the stage.
-        mean_tol: a round must raise the mean quality by this much to count as progress.
-        eta_histogram_edges: bin edges of the eta histogram in the report.
-        hausdorff_samples_per_face: random surface samples per boundary triangle (plus all
-            vertices, edge midpoints and centroids) for the measured Hausdorff distance.
-        hausdorff_margin: factor on every sampled local surface move before it is charged
-            to the budget (a sampled maximum is slightly below the true one).
-    """
-
-    max_surface_move: float = 0.1
-    quality: str = "sine_eta"
-    min_gain: float = 1e-3
-    flip_threshold: float = 0.75
-    max_ring: int = 7
-    max_boundary_ring: int = 5
-    max_flip_passes: int = 8
-    smooth_passes: int = 2
-    smooth_threshold: float = 0.75
-    boundary_threshold: float = 0.35
-    mean_guard: float = 0.35
-    smooth_beta: float = 40.0
-    smooth_step: float = 0.25
-    smooth_line_steps: int = 6
-    smooth_fd: float = 1e-4
-    surface_samples: int = 4
-    smooth_budget_share: float = 1.0
-    inside_rounds: int = 1
-    feature_ratio: float = 0.15
-    split_threshold: float = 0.2
-    max_splits_fraction: float = 0.02
-    split_smooth_passes: int = 4
-    max_rounds: int = 12
-    mean_tol: float = 1e-3
-    eta_histogram_edges: tuple = field(default=ETA_HISTOGRAM_EDGES)
-    hausdorff_samples_per_face: int = 8
-    hausdorff_margin: float = 1.2
-
-    def __post_init__(self):
-        if self.quality not in QUALITY_MEASURES:
-            raise ValueError(f"quality must be one of {sorted(QUALITY_MEASURES)}, got {self.quality!r}")
-        if not (math.isfinite(self.max_surface_move) and self.max_surface_move >= 0):
-            raise ValueError(f"max_surface_move must be a finite number >= 0, got {self.max_surface_move}")
-        if not 3 <= self.max_ring <= 8:
-            raise ValueError(f"max_ring must lie in [3, 8], got {self.max_ring}")
-        if not 0 <= self.max_boundary_ring <= 7:
-            raise ValueError(f"max_boundary_ring must lie in [0, 7], got {self.max_boundary_ring}")
-        if self.surface_samples < 1:
-            raise ValueError(f"surface_samples must be >= 1, got {self.surface_samples}")
-        if not 0.0 <= self.smooth_budget_share <= 1.0:
-            raise ValueError(f"smooth_budget_share must lie in [0, 1], got {self.smooth_budget_share}")
-        if self.hausdorff_margin < 1.0:
-            raise ValueError(f"hausdorff_margin must be >= 1, got {self.hausdorff_margin}")
-        edges = tuple(float(e) for e in self.eta_histogram_edges)
-        if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
-            raise ValueError(f"eta_histogram_edges must increase strictly, got {self.eta_histogram_edges}")
 
 
 # ---------------------------------------------------------------------------- quality
