@@ -41,18 +41,31 @@ def _views(dataset, views):
     return np.asarray(dataset.train_idx if views is None else views, dtype=np.int64)
 
 
-def hull_field(dataset, points, views=None, *, outside_is_empty: bool = True, device: str = "cpu"):
+def _tolerance(dataset, v, tolerance) -> dict:
+    """Carve arguments (outliers, margin_px) of a :class:`holowarp.config.HullTolerance`
+    (``None``: the plain visual hull)."""
+    if tolerance is None:
+        return {}
+    k, m = tolerance.counts(len(v), dataset.width, dataset.height)
+    return {"outliers": k, "margin_px": m}
+
+
+def hull_field(dataset, points, views=None, *, outside_is_empty: bool = True, tolerance=None, device: str = "cpu"):
     """Carve field (P,) and the number of views seeing each point (P,) at world ``points``
-    (P, 3), over ``views`` (default: the training views)."""
+    (P, 3), over ``views`` (default: the training views). ``tolerance``: a
+    :class:`holowarp.config.HullTolerance` (all but k views, dilated masks); ``None`` trusts
+    every mask as it is."""
     v = _views(dataset, views)
     return carve_points(dataset.viewmats[v], dataset.K[v], dataset.masks[v], points,
-                        outside_is_empty=outside_is_empty, device=device)
+                        outside_is_empty=outside_is_empty, device=device, **_tolerance(dataset, v, tolerance))
 
 
-def inside_hull(dataset, points, views=None, *, threshold: float = 0.5, device: str = "cpu") -> np.ndarray:
+def inside_hull(dataset, points, views=None, *, threshold: float = 0.5, tolerance=None,
+                device: str = "cpu") -> np.ndarray:
     """(P,) bool: ``points`` (P, 3) inside the visual hull of ``views`` (every view sees the
-    whole object, so a point outside an image is outside the hull)."""
-    field, _ = hull_field(dataset, points, views, device=device)
+    whole object, so a point outside an image is outside the hull), with ``tolerance`` as in
+    :func:`hull_field`."""
+    field, _ = hull_field(dataset, points, views, tolerance=tolerance, device=device)
     return field > threshold
 
 
@@ -89,13 +102,14 @@ def view_sphere(dataset, views) -> tuple[np.ndarray, float]:
 
 
 def sample_points_in_hull(dataset, n_points: int, *, views=None, candidates: int = 200_000, seed: int = 0,
-                          device: str = "cpu") -> tuple[np.ndarray, float]:
+                          tolerance=None, device: str = "cpu") -> tuple[np.ndarray, float]:
     """Up to ``n_points`` uniform random points inside the visual hull of ``views``.
 
     Candidates are uniform in the cube around :func:`view_sphere`; a candidate is kept when
     at least one view sees it and every view that sees it has mask >= 0.5 there (views it
     falls outside of do not count: the sphere, not the whole cube, is seen by all). If the
     masks carve (almost) everything away, the whole view sphere is used instead.
+    ``tolerance`` as in :func:`hull_field`.
 
     Returns:
         points (P, 3) float64 and the sampling radius.
@@ -104,7 +118,7 @@ def sample_points_in_hull(dataset, n_points: int, *, views=None, candidates: int
     idx = _views(dataset, views)
     c, r = view_sphere(dataset, idx)
     pts = c + rng.uniform(-r, r, (candidates, 3))
-    field, seen = hull_field(dataset, pts, idx, outside_is_empty=False, device=device)
+    field, seen = hull_field(dataset, pts, idx, outside_is_empty=False, tolerance=tolerance, device=device)
     keep = (field >= 0.5) & (seen > 0)
     if keep.sum() < max(16, n_points // 50):
         keep = np.linalg.norm(pts - c, axis=1) <= r

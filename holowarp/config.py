@@ -170,6 +170,39 @@ class Stage0Schedule:
 
 
 @dataclass(frozen=True)
+class HullTolerance:
+    """How far a visual-hull carve trusts the masks (real captures, issue 16).
+
+    A point is kept when all but ``k`` of the views that judge it see it inside their mask,
+    after every mask is dilated by ``m`` pixels, where for N views of W x H pixels
+    ``k = min(floor(outlier_views * N), 7)`` and ``m = round(margin * max(W, H))``. One view
+    whose mask is a few pixels too tight, or whose pose is slightly off, then no longer
+    carves a notch through the object (method.md §5's initial field, stage 0's first
+    surfels). The optimisation prunes what the looser start keeps.
+
+    Attributes:
+        outlier_views: fraction of the views allowed to reject a kept point (0: the plain
+            intersection of all masks).
+        margin: mask dilation as a fraction of the longer image side (1/128: one pixel at
+            128 px, four at 512).
+    """
+
+    outlier_views: float = 0.02
+    margin: float = 1.0 / 128.0
+
+    def counts(self, num_views: int, width: int, height: int) -> tuple[int, int]:
+        """``(k, m)``: the views that may reject a kept point and the dilation in pixels."""
+        if not (0.0 <= self.outlier_views < 1.0 and 0.0 <= self.margin < 0.5):
+            raise ValueError(f"hull tolerance: outlier_views must lie in [0, 1) and margin in [0, 0.5), got {self}")
+        k = min(int(math.floor(self.outlier_views * int(num_views))), 7)
+        return k, int(round(self.margin * max(int(width), int(height))))
+
+
+#: The plain visual hull: every mask trusted as it is.
+STRICT_HULL = HullTolerance(outlier_views=0.0, margin=0.0)
+
+
+@dataclass(frozen=True)
 class Stage0Config:
     """Stage 0, 2D Gaussian surfels (method.md §3). The run's length is
     ``Schedule.stage0_iters``; the iteration-valued fields below describe a run of
@@ -183,6 +216,7 @@ class Stage0Config:
 
     Attributes:
         background: colour the images are composited on, and rendered over (RGB in [0, 1]).
+        hull: how the visual hull the first surfels are sampled in trusts the masks.
         init_points: surfels sampled inside the masks' visual hull at the start.
         init_candidates: uniform samples tested against the masks to find them.
         init_opacity: initial opacity (3DGS: 0.1).
@@ -216,6 +250,7 @@ class Stage0Config:
     """
 
     reference_iters: int = STAGE0_REFERENCE_ITERS
+    hull: HullTolerance = field(default_factory=HullTolerance)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     init_points: int = 4000
     init_candidates: int = 200_000
@@ -328,6 +363,7 @@ class TopologyConfig:
             SDF-like start), "depth_hull" (the same region minus the space some view sees in
             front of the stage-0 surfels' surface: concavities the silhouettes miss) or
             "inside" (every vertex at -phi_inside, all tets opaque).
+        hull: how the mask-consistent region trusts the masks (:class:`HullTolerance`).
         depth_carve_views: at most this many training views carve by depth (every k-th).
         depth_carve_tol: a vertex is carved when it lies this many mean edge lengths in front
             of the rendered surface (margin against depth noise).
@@ -370,6 +406,7 @@ class TopologyConfig:
     rotation_lr: float = 0.005
     normal_rank_fraction: float = 0.5
     phi_init: str = "visual_hull"
+    hull: HullTolerance = field(default_factory=HullTolerance)
     depth_carve_views: int = 40
     depth_carve_tol: float = 1.0
     depth_carve_min_views: int = 2
@@ -574,6 +611,9 @@ class ReconConfig:
         schedule: order of events.
         improve: the element improvement after cleanup (method.md §7b); ``enabled=False``
             skips it (the paper's pipeline ends at cleanup).
+        test_every: a dataset without its own test split (NeRF-synthetic without
+            ``transforms_test.json``, NeuS/IDR, COLMAP) holds out every this-many-th view
+            for the test metrics; ``report.json -> held_out`` lists them.
         checkpoint_every: main-loop iterations between checkpoints.
         seed: seeds every random choice (view order, initialisation), so runs and resumed
             runs are reproducible.
@@ -589,6 +629,7 @@ class ReconConfig:
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     cleanup: CleanupConfig = field(default_factory=CleanupConfig)
     improve: ImproveConfig = field(default_factory=ImproveConfig)
+    test_every: int = 10
     checkpoint_every: int = 250
     seed: int = 0
 

@@ -79,7 +79,7 @@ def prepare_dataset(dataset_path, out_dir, config, *, device: str = "cpu", progr
         raise ReconstructionError(f"dataset {dataset_path}: no such folder")
     else:
         data_dir = Path(dataset_path)
-    dataset = load_dataset(data_dir, res=config.resolution)
+    dataset = load_dataset(data_dir, res=config.resolution, test_every=config.test_every)
     preflight(dataset, config.preflight, device=device)
     say(f"reconstructing {dataset.name}: {len(dataset.train_idx)} training / {len(dataset.test_idx)} test views at "
         f"{dataset.width}x{dataset.height}, preset {config.preset}, device {device}" + (", resuming" if resuming else ""),

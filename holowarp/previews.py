@@ -29,6 +29,8 @@ __all__ = [
     "labelled",
     "error_colors",
     "write_error_maps",
+    "preview_silhouettes",
+    "preview_turntable",
 ]
 
 #: Previews are upscaled to at least this many pixels of height.
@@ -84,6 +86,71 @@ def preview_test_views(out_dir: Path, renders, gts, views, *, psnrs=None, max_vi
         canvas.paste(right, (left.width + 8, 0))
         paths.append(_save(Path(out_dir) / f"test_{int(v):03d}.png", canvas))
     return paths
+
+
+def _outline(a: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels of region ``a`` (bool) that touch a pixel outside it."""
+    p = np.pad(a, 1, constant_values=False)
+    inner = p[:-2, 1:-1] & p[2:, 1:-1] & p[1:-1, :-2] & p[1:-1, 2:]
+    return a & ~inner
+
+
+def preview_silhouettes(path: Path, photos, mesh_alphas, masks, views) -> str:
+    """Up to three photos side by side, each with the tet mesh's silhouette overlaid: the
+    mesh region tinted, its outline in green and the mask's outline in magenta, so the two
+    outlines show where they disagree. Labelled with the view and its silhouette IoU."""
+    from PIL import Image
+
+    tiles = []
+    for photo, alpha, mask, v in list(zip(photos, mesh_alphas, masks, views))[:3]:
+        a, m = np.asarray(alpha) > 0.5, np.asarray(mask) > 0.5
+        img = np.asarray(photo, dtype=np.float32)[..., :3].copy()
+        img[a] = 0.6 * img[a] + 0.4 * np.array([0.2, 0.8, 0.3])
+        img[_outline(m)] = (1.0, 0.1, 0.9)
+        img[_outline(a)] = (0.1, 1.0, 0.2)
+        union = (a | m).sum()
+        tiles.append(labelled(img, f"view {int(v)}: mesh (green) vs mask (magenta), IoU {(a & m).sum() / max(union, 1):.3f}"))
+    canvas = Image.new("RGB", (sum(t.width for t in tiles) + 8 * (len(tiles) - 1), max(t.height for t in tiles)),
+                       (255, 255, 255))
+    x = 0
+    for t in tiles:
+        canvas.paste(t, (x, 0))
+        x += t.width + 8
+    return _save(Path(path), canvas)
+
+
+def preview_turntable(path: Path, mesh: TetMesh, *, frames: int = 8, res: int = 256, device: str = "cpu") -> str:
+    """The tet mesh's boundary, shaded (a light at the camera, Lambert), from ``frames``
+    cameras on a circle around it (elevation 20 degrees, up +Z), in one row of tiles."""
+    import torch
+
+    from holowarp.camera import FOV_DEG, intrinsics_from_fov, look_at
+    from holowarp.ops import rasterize_mesh
+
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+    dist = 1.1 * radius / np.sin(np.radians(FOV_DEG) / 2)
+    K = intrinsics_from_fov(np.radians(FOV_DEG), res, res)
+    x = torch.tensor(V, dtype=torch.float32, device=device)
+    faces = torch.tensor(np.asarray(mesh.boundary_faces()), dtype=torch.int32, device=device)
+    tiles = []
+    for k in range(frames):
+        az, el = 2 * np.pi * k / frames, np.radians(20.0)
+        eye = centre + dist * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+        vm = look_at(eye, centre)
+        with torch.no_grad():
+            r = rasterize_mesh(x, faces, vm, K, res, res)
+        n = r["normal"].cpu().numpy()
+        a = r["alpha"].cpu().numpy()
+        to_cam = -vm[2, :3]  # world direction from the surface back to the camera
+        shade = np.clip((n @ to_cam) / np.maximum(np.linalg.norm(n, axis=-1), 1e-12), 0.0, 1.0)
+        rgb = (0.15 + 0.8 * shade)[..., None] * np.array([0.85, 0.8, 0.7])
+        tiles.append(a[..., None] * rgb + (1 - a[..., None]) * 1.0)
+    im = _to_image(np.concatenate(tiles, axis=1), min_height=res)
+    labelled_im = labelled(np.asarray(im, dtype=np.float32) / 255.0,
+                           f"{mesh.num_tets} tets, {len(mesh.boundary_faces())} boundary faces; turntable", min_height=res)
+    return _save(Path(path), labelled_im)
 
 
 def preview_cutaway(path: Path, mesh: TetMesh, *, axis: int = 1) -> str:

@@ -34,6 +34,8 @@ def build_parser():
     p.add_argument("--edge-length", type=float, default=None, metavar="FAC",
                    help="fTetWild edge length / bbox diagonal, in (0, 1) (the resolution knob)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's)")
+    p.add_argument("--test-every", type=int, default=None, metavar="N",
+                   help="without a test split in the dataset, hold out every N-th view for the test metrics (default 10)")
     p.add_argument("--no-improve", action="store_true",
                    help="skip the element improvement after cleanup (method.md §7b; the paper's pipeline ends at cleanup)")
     cli.add_device(p)
@@ -64,6 +66,10 @@ def config_from_args(args):
         cfg = replace(cfg, tet_init=replace(cfg.tet_init, edge_length_fac=args.edge_length))
     if args.seed is not None:
         cfg = replace(cfg, seed=args.seed)
+    if args.test_every is not None:
+        if args.test_every < 1:
+            cli.fail(f"--test-every {args.test_every}: must be >= 1")
+        cfg = replace(cfg, test_every=args.test_every)
     if args.no_improve:
         cfg = replace(cfg, improve=replace(cfg.improve, enabled=False))
     return cfg

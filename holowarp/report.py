@@ -7,7 +7,11 @@ Keys (a contract other tools read): ``preset``, ``device``, ``dataset``, ``resol
 ``vertices_final``, ``components``, ``manifold``, ``genus``, ``inverted_before_cleanup``,
 ``flipped``, ``dropped``, ``cleanup``, ``inverted_ratio``, ``min_dihedral_mean``,
 ``aspect_ratio_mean``, ``prunes``, ``raw_components_max``, ``geometry_blocks``, ``stage0``,
-``psnr_test``, ``ssim_test``, ``peak_rss_mb``, ``outputs``, ``previews``, ``config``,
+``psnr_test``, ``ssim_test``, ``test_views`` (the views those are measured on),
+``held_out`` (``{"test_every", "views"}`` when they were held out of a dataset without its
+own test split, else ``null``), ``mesh_mask_iou`` and ``mesh_surfel_normal_cos`` (the
+mesh against the test views' masks and the surfels' normals, :mod:`holowarp.metrics.views`,
+with ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews``, ``config``,
 ``improve`` (the element improvement's section, :func:`holowarp.stages.improve.improve`;
 ``null`` when ``config.improve.enabled`` is off), and ``metrics`` (method.md §9) when the
 dataset has a ground-truth mesh. The mesh counts and qualities are those of the final mesh
@@ -86,6 +90,8 @@ def build_report(*, config, device, data_dir, dataset, state, clean, cleanup_inf
         "stage0": state.stage0,
         "psnr_test": psnr,
         "ssim_test": ssim,
+        "test_views": [int(v) for v in dataset.test_idx],
+        "held_out": dataset.meta.get("held_out"),
         "peak_rss_mb": None,
         "outputs": outputs,
         "previews": previews,
@@ -110,11 +116,8 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
     """
     from pathlib import Path
 
-    import torch
-
-    from holowarp.previews import preview_cutaway, preview_losses, preview_test_views
     from holowarp.stages.cleanup import cleanup
-    from holowarp.stages.export import render_test_views, write_outputs
+    from holowarp.stages.export import write_outputs
 
     t0 = time.perf_counter()
     clean, kept, cinfo = cleanup(model.mesh(), config.cleanup)
@@ -125,16 +128,7 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     outputs = write_outputs(out_dir, model, clean, name=name)
-    test = dataset.test_idx if len(dataset.test_idx) else dataset.train_idx[:4]
-    renders = render_test_views(model, dataset, test, background=torch.zeros(3, device=device))
-    gts = list(dataset.composite((0.0, 0.0, 0.0))[test])
-    psnr, ssim, per_view = image_metrics(renders, gts)
-    prev = out_dir / "previews"
-    previews = {
-        "test_views": preview_test_views(prev, renders, gts, test, psnrs=per_view),
-        "cutaway": preview_cutaway(prev / "cutaway_components.png", clean),
-        "losses": preview_losses(prev / "losses.png", history),
-    }
+    views = _view_results(model, clean, dataset, out_dir / "previews", history, device)
     state.add_time("export", time.perf_counter() - t0, 0)
 
     metrics = None
@@ -145,12 +139,47 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
 
         t0 = time.perf_counter()
         metrics = evaluate_mesh(clean, dataset.gt_mesh, dataset=dataset, device=str(device))
-        previews["error_maps"] = write_error_maps(prev, *evaluation_surfaces(clean, dataset.gt_mesh),
-                                                  device=str(device))["paths"]
+        views["previews"]["error_maps"] = write_error_maps(out_dir / "previews",
+                                                           *evaluation_surfaces(clean, dataset.gt_mesh),
+                                                           device=str(device))["paths"]
         state.add_time("evaluate", time.perf_counter() - t0, 0)
-    return build_report(config=config, device=device, data_dir=data_dir, dataset=dataset, state=state, clean=clean,
-                        cleanup_info=cinfo, psnr=psnr, ssim=ssim, outputs=outputs, previews=previews, metrics=metrics,
-                        improve_info=improve_info)
+    report = build_report(config=config, device=device, data_dir=data_dir, dataset=dataset, state=state, clean=clean,
+                          cleanup_info=cinfo, psnr=views["psnr"], ssim=views["ssim"], outputs=outputs,
+                          previews=views["previews"], metrics=metrics, improve_info=improve_info)
+    report.update(views["checks"])
+    return report
+
+
+def _view_results(model, mesh, dataset, prev, history, device) -> dict:
+    """The test views: the surfels' PSNR/SSIM, the mesh's image checks (issue 16:
+    ``mesh_mask_iou``, ``mesh_surfel_normal_cos`` and their per-view values), and the
+    previews (test views, silhouettes on three photos, turntable, cutaway, losses)."""
+    import torch
+
+    from holowarp.metrics.views import mesh_image_checks, mesh_renders
+    from holowarp.previews import (preview_cutaway, preview_losses, preview_silhouettes, preview_test_views,
+                                   preview_turntable)
+    from holowarp.stages.export import render_surfel_views
+
+    test = dataset.test_idx if len(dataset.test_idx) else dataset.train_idx[:4]
+    surfels = render_surfel_views(model, dataset, test, background=torch.zeros(3, device=device))
+    renders = [r["rgb"] for r in surfels]
+    gts = list(dataset.composite((0.0, 0.0, 0.0))[test])
+    psnr, ssim, per_view = image_metrics(renders, gts)
+    meshes = mesh_renders(mesh, dataset, test, device=str(device))
+    checks = mesh_image_checks(meshes, dataset.masks[test], surfels)
+    pick = np.linspace(0, len(test) - 1, min(3, len(test))).round().astype(int)
+    previews = {
+        "test_views": preview_test_views(prev, renders, gts, test, psnrs=per_view),
+        "silhouettes": preview_silhouettes(prev / "silhouettes.png", [dataset.images[test[i]] for i in pick],
+                                           [meshes[i]["alpha"] for i in pick], dataset.masks[test[pick]], test[pick]),
+        "turntable": preview_turntable(prev / "turntable.png", mesh, device=str(device)),
+        "cutaway": preview_cutaway(prev / "cutaway_components.png", mesh),
+        "losses": preview_losses(prev / "losses.png", history),
+    }
+    return {"psnr": psnr, "ssim": ssim, "previews": previews,
+            "checks": {"mesh_mask_iou": checks["mesh_mask_iou"], "mesh_surfel_normal_cos": checks["mesh_surfel_normal_cos"],
+                       "mesh_checks_per_view": checks["per_view"]}}
 
 
 def _improve(model, clean, config, device, state):

@@ -9,6 +9,10 @@ is otherwise left to the other views. The visual hull is the 0.5 super-level set
 kept iff it projects inside every mask (mask > 0.5), and marching cubes at 0.5 on this field
 places the surface between nodes with sub-voxel accuracy from the soft mask edges.
 
+A *tolerant* carve (``outliers = k > 0``) takes the (k+1)-th smallest value instead of the
+minimum: a node is kept when all but k views see it inside (real captures: masks and poses
+that disagree by a few pixels in some views).
+
 Warp + NumPy only: no torch below ``kernels/``.
 """
 
@@ -16,7 +20,7 @@ from __future__ import annotations
 
 import warp as wp
 
-__all__ = ["carve_kernel", "carve_points_kernel", "carve_value", "sample_mask_bilinear"]
+__all__ = ["carve_kernel", "carve_points_kernel", "carve_value", "sample_mask_bilinear", "MAX_OUTLIERS"]
 
 
 @wp.func
@@ -38,6 +42,11 @@ def sample_mask_bilinear(masks: wp.array3d(dtype=float), view: int, x: float, y:
     return top * (1.0 - ay) + bot * ay
 
 
+#: Most views a tolerant carve may let reject a point it keeps (:func:`carve_value`).
+MAX_OUTLIERS = 7
+_lowest = wp.types.vector(length=MAX_OUTLIERS + 1, dtype=float)
+
+
 @wp.func
 def carve_value(
     p: wp.vec3,
@@ -45,11 +54,18 @@ def carve_value(
     Ks: wp.array(dtype=wp.mat33),
     masks: wp.array3d(dtype=float),
     outside_is_empty: int,
+    outliers: int,
 ):
-    """(min over views of the bilinear mask at p's projection, number of views that see p)."""
+    """(the (outliers+1)-th smallest over views of the bilinear mask at p's projection, the
+    number of views that see p). ``outliers = 0`` is the plain minimum (the visual hull);
+    ``outliers = k`` keeps a point that all but k views see inside, so a few masks that are
+    too tight (or poses that are slightly off) cannot carve a notch through the object.
+    A view that p lies behind or (with ``outside_is_empty``) projects outside of gives 0."""
     h = float(masks.shape[1])
     w = float(masks.shape[2])
-    val = float(1.0)
+    lo = _lowest()
+    for j in range(MAX_OUTLIERS + 1):
+        lo[j] = 1.0
     seen = int(0)
     for v in range(viewmats.shape[0]):
         M = viewmats[v]
@@ -58,22 +74,31 @@ def carve_value(
             M[1, 0] * p[0] + M[1, 1] * p[1] + M[1, 2] * p[2] + M[1, 3],
             M[2, 0] * p[0] + M[2, 1] * p[1] + M[2, 2] * p[2] + M[2, 3],
         )
+        val = float(1.0)
+        counted = int(1)
         if pc[2] <= 1.0e-6:
             val = 0.0
-            break
-        K = Ks[v]
-        x = K[0, 0] * pc[0] / pc[2] + K[0, 1] * pc[1] / pc[2] + K[0, 2]
-        y = K[1, 1] * pc[1] / pc[2] + K[1, 2]
-        if x < 0.0 or y < 0.0 or x > w or y > h:
-            if outside_is_empty != 0:
-                val = 0.0
-                break
         else:
-            seen += 1
-            val = wp.min(val, sample_mask_bilinear(masks, v, x, y))
-            if val <= 0.0:
+            K = Ks[v]
+            x = K[0, 0] * pc[0] / pc[2] + K[0, 1] * pc[1] / pc[2] + K[0, 2]
+            y = K[1, 1] * pc[1] / pc[2] + K[1, 2]
+            if x < 0.0 or y < 0.0 or x > w or y > h:
+                val = 0.0
+                if outside_is_empty == 0:
+                    counted = 0
+            else:
+                seen += 1
+                val = sample_mask_bilinear(masks, v, x, y)
+        if counted != 0 and val < lo[outliers]:
+            # insert into the sorted list of the outliers+1 smallest values
+            j = outliers
+            while j > 0 and lo[j - 1] > val:
+                lo[j] = lo[j - 1]
+                j -= 1
+            lo[j] = val
+            if lo[outliers] <= 0.0:
                 break
-    return val, seen
+    return lo[outliers], seen
 
 
 @wp.kernel
@@ -84,11 +109,12 @@ def carve_kernel(
     Ks: wp.array(dtype=wp.mat33),  # [V]
     masks: wp.array3d(dtype=float),  # [V, H, W] in [0, 1]
     outside_is_empty: int,
-    field: wp.array3d(dtype=float),  # [NX, NY, NZ] min over views of the mask
+    outliers: int,  # views that may reject a kept node (0: the plain visual hull)
+    field: wp.array3d(dtype=float),  # [NX, NY, NZ] (outliers+1)-th smallest mask value over views
 ):
     i, j, k = wp.tid()
     p = origin + wp.vec3(float(i), float(j), float(k)) * spacing
-    val, seen = carve_value(p, viewmats, Ks, masks, outside_is_empty)
+    val, seen = carve_value(p, viewmats, Ks, masks, outside_is_empty, outliers)
     field[i, j, k] = val
 
 
@@ -99,10 +125,11 @@ def carve_points_kernel(
     Ks: wp.array(dtype=wp.mat33),  # [V]
     masks: wp.array3d(dtype=float),  # [V, H, W] in [0, 1]
     outside_is_empty: int,
-    field: wp.array(dtype=float),  # [P] min over views of the mask
+    outliers: int,  # views that may reject a kept point (0: the plain visual hull)
+    field: wp.array(dtype=float),  # [P] (outliers+1)-th smallest mask value over views
     seen: wp.array(dtype=wp.int32),  # [P] views in front of which the point projects in frame
 ):
     i = wp.tid()
-    val, n = carve_value(points[i], viewmats, Ks, masks, outside_is_empty)
+    val, n = carve_value(points[i], viewmats, Ks, masks, outside_is_empty, outliers)
     field[i] = val
     seen[i] = n

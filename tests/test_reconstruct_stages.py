@@ -216,6 +216,63 @@ def test_hull_field_matches_a_float64_bilinear_reference_on_random_points(sphere
     assert pos.mean() > 0.1 and np.mean(seen[pos] == ref_seen[pos].sum(axis=1)) > 0.99
 
 
+def _dilate_ref(masks, r):
+    """Brute-force grey dilation by a disk of radius r (max over shifted copies)."""
+    out = masks.copy()
+    H, W = masks.shape[1:]
+    pad = np.pad(masks, ((0, 0), (r, r), (r, r)))
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            if dx * dx + dy * dy <= r * r:
+                out = np.maximum(out, pad[:, r + dy:r + dy + H, r + dx:r + dx + W])
+    return out
+
+
+@pytest.mark.parametrize("outliers, margin", [(1, 0), (3, 0), (2, 1), (0, 2)])
+def test_tolerant_hull_field_is_the_k_plus_first_smallest_dilated_mask_value(sphere_scene, rng, outliers, margin):
+    from dataclasses import replace as dc_replace
+
+    from holowarp.config import HullTolerance
+    from oracles import bilinear_masks
+
+    ds, _ = sphere_scene
+    n = len(ds.train_idx)
+    tol = HullTolerance(outlier_views=(outliers + 0.5) / n, margin=(margin + 0.1) / ds.width)
+    assert tol.counts(n, ds.width, ds.height) == (outliers, margin)
+    pts = rng.uniform(-0.6, 0.6, (3000, 3))
+    dil = dc_replace(ds, masks=_dilate_ref(ds.masks, margin))
+    vals, _ = bilinear_masks(pts, dil, ds.train_idx)
+    field, _ = hull_field(ds, pts, ds.train_idx, tolerance=tol)
+    np.testing.assert_allclose(field, np.sort(vals, axis=1)[:, outliers], atol=2e-5)
+    strict, _ = hull_field(ds, pts, ds.train_idx)
+    assert np.all(field >= strict - 1e-6) and np.mean(field > strict + 1e-3) > 0.01
+
+
+def test_a_few_masks_too_tight_carve_no_notch_into_the_tolerant_hull(sphere_scene):
+    from dataclasses import replace as dc_replace
+    from scipy.ndimage import grey_erosion, shift
+
+    from holowarp.config import HullTolerance
+
+    ds, mesh = sphere_scene
+    masks = ds.masks.copy()
+    bad = ds.train_idx[[1, 5]]
+    masks[bad[0]] = grey_erosion(masks[bad[0]], size=(7, 7))  # 3 px too tight
+    masks[bad[1]] = shift(masks[bad[1]], (0, 3), order=1)  # shifted by 3 px
+    broken = dc_replace(ds, masks=masks)
+    inner = mesh.vertices[np.linalg.norm(mesh.vertices, axis=1) < RADIUS - 0.02]  # truly inside
+    assert inside_hull(ds, inner, ds.train_idx).all()
+    assert not inside_hull(broken, inner, ds.train_idx).all()  # the strict hull has a notch
+    tol = HullTolerance(outlier_views=2.5 / len(ds.train_idx), margin=0.0)
+    assert inside_hull(broken, inner, ds.train_idx, tolerance=tol).all()
+    cfg = TopologyConfig(hull=tol)
+    phi = init_phi(mesh, broken, ds.train_idx, cfg)
+    assert np.all(phi[np.linalg.norm(mesh.vertices, axis=1) < RADIUS - 0.02] < 0)
+    # ... and what no view sees inside stays outside
+    far = np.linalg.norm(mesh.vertices, axis=1) > RADIUS + 0.1
+    assert np.all(phi[far] > 0)
+
+
 def test_visual_hull_field_is_negative_inside_and_grows_like_a_distance(sphere_scene):
     ds, mesh = sphere_scene
     phi = init_phi(mesh, ds, ds.train_idx, TopologyConfig())

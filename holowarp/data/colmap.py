@@ -238,6 +238,7 @@ def load_colmap(path: str | os.PathLike, *, res: int | None = None, test_every: 
     unregistered = sorted(im.name for im in rec.images.values() if not im.has_pose)
     meta = {"format": "colmap", "model": str(model_dir), "images": [v["name"] for v in views],
             "mask_files": [str(v["mask"].relative_to(root / "masks")) for v in views], "unregistered": unregistered,
+            "held_out": {"test_every": int(test_every), "views": idx[idx % test_every == 0].tolist()},
             "cameras": {int(c.camera_id): {"model": c.model.name, "params": [float(x) for x in c.params],
                                            "undistorted": c.model.name not in PINHOLE_MODELS}
                         for c in {v["camera"].camera_id: v["camera"] for v in views}.values()}}

@@ -164,4 +164,5 @@ def load_neus(path: str | os.PathLike, *, res: int | None = None, test_every: in
     return Dataset(images=views["image"], masks=views["mask"], K=K, viewmats=np.stack([c[1] for c in cameras]),
                    train_idx=idx[idx % test_every != 0], test_idx=idx[idx % test_every == 0], root=root,
                    gt_mesh=(root / "gt.obj") if (root / "gt.obj").is_file() else None, name=root.name,
-                   meta={"format": "neus", "mask_files": [str(m.name) for m in mask_files]})
+                   meta={"format": "neus", "mask_files": [str(m.name) for m in mask_files],
+                         "held_out": {"test_every": int(test_every), "views": idx[idx % test_every == 0].tolist()}})

@@ -19,7 +19,7 @@ import torch
 from holowarp.tetgs import TetGaussians
 from holowarp.tetmesh import TetMesh
 
-__all__ = ["write_outputs", "render_test_views"]
+__all__ = ["write_outputs", "render_test_views", "render_surfel_views"]
 
 
 def write_outputs(out_dir: Path, model: TetGaussians, mesh: TetMesh, *, material=None, name: str = "Object") -> dict:
@@ -49,11 +49,18 @@ def write_outputs(out_dir: Path, model: TetGaussians, mesh: TetMesh, *, material
     return {k: str(v) for k, v in paths.items()}
 
 
-def render_test_views(model: TetGaussians, dataset, views, *, background) -> list[np.ndarray]:
-    """RGB renders (H, W, 3) float32 of ``views``."""
+def render_surfel_views(model: TetGaussians, dataset, views, *, background) -> list[dict]:
+    """Per view of ``views``: the surfels' ``rgb`` (H, W, 3, clamped to [0, 1]), ``alpha``
+    (H, W) and world ``normal`` (H, W, 3), float32 arrays."""
     out = []
     with torch.no_grad():
         for v in views:
             r = model.render(dataset.viewmats[v], dataset.K[v], dataset.width, dataset.height, background=background)
-            out.append(r["rgb"].clamp(0, 1).cpu().numpy())
+            out.append({"rgb": r["rgb"].clamp(0, 1).cpu().numpy(), "alpha": r["alpha"].cpu().numpy(),
+                        "normal": r["normal"].cpu().numpy()})
     return out
+
+
+def render_test_views(model: TetGaussians, dataset, views, *, background) -> list[np.ndarray]:
+    """RGB renders (H, W, 3) float32 of ``views``."""
+    return [r["rgb"] for r in render_surfel_views(model, dataset, views, background=background)]

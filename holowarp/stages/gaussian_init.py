@@ -80,7 +80,7 @@ def init_surfels(dataset: Dataset, config: Stage0Config, *, seed: int = 0, devic
     each the mean over ``init_color_views`` random training views that see it."""
     idx = _train_views(dataset)
     pts, _ = sample_points_in_hull(dataset, config.init_points, views=idx, candidates=config.init_candidates,
-                                   seed=seed, device=device)
+                                   seed=seed, tolerance=config.hull, device=device)
     rng = np.random.default_rng([seed, 1])
     return pts, _image_colors(dataset, pts, rng.permutation(idx)[: config.init_color_views])
 

@@ -108,7 +108,7 @@ def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig, *, depth_map
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import dijkstra
 
-    inside = inside_hull(dataset, mesh.vertices, views)
+    inside = inside_hull(dataset, mesh.vertices, views, tolerance=config.hull)
     if config.phi_init == "depth_hull":
         if depth_maps is None:
             raise ValueError("phi_init 'depth_hull' needs the stage-0 surfels' depth maps")
