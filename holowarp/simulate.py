@@ -39,6 +39,8 @@ def build_parser():
     p.add_argument("--reference", default=None, metavar="GT_MESH",
                    help="ground-truth mesh simulated in the same scene; adds sim_chamfer to the report")
     p.add_argument("--render", action="store_true", help="also write PNG frames to OUT/frames/ (pyvista, off screen)")
+    p.add_argument("--allow-long", action="store_true",
+                   help="run even when the estimated work (steps x substeps x iterations x tets) is above the cap")
     p.add_argument("--chamfer-samples", type=int, default=None,
                    help="surface samples per mesh for sim_chamfer (default 100000, method.md §9)")
     cli.add_device(p)
@@ -57,7 +59,7 @@ def _run(args) -> int:
     report = simulate(
         args.mesh, args.scene, device=args.device, reference=args.reference, out_dir=out,
         render_dir=(out / "frames") if args.render else None, progress=not args.quiet,
-        chamfer_samples=args.chamfer_samples,
+        chamfer_samples=args.chamfer_samples, allow_long=args.allow_long,
     )
     summary = {k: report[k] for k in _SUMMARY_KEYS if k in report}
     print(json.dumps(summary, indent=2))

@@ -47,6 +47,27 @@ class SimulationError(InputError):
     """The inputs of a simulation cannot be used; the message names the file or argument."""
 
 
+#: Largest estimated work (steps x substeps x iterations x tets, summed over bodies) a
+#: simulation starts without ``allow_long``: about ten minutes simulated at 60 steps per
+#: second for a 5k-tet body at 16 iterations, hours of CPU time. A duration typed one unit
+#: off (1e9 s) would otherwise run until killed.
+MAX_WORK = 6.0e10
+
+
+def check_work(scene, meshes, *, allow_long: bool = False) -> float:
+    """The estimated work of simulating ``meshes`` in ``scene``; raises
+    :class:`SimulationError` above :data:`MAX_WORK` unless ``allow_long``."""
+    sim = scene.sim
+    tets = sum(int(m.num_tets) for m in meshes)
+    work = float(scene.num_steps) * sim.substeps * sim.iterations * tets
+    if work > MAX_WORK and not allow_long:
+        raise SimulationError(
+            f"scene {scene.name!r}: duration {sim.duration:g} s is {scene.num_steps:.3g} steps x {sim.substeps} substeps "
+            f"x {sim.iterations} iterations x {tets} tets = {work:.2g} tet-iterations, above the cap of {MAX_WORK:.2g} "
+            "(hours of compute); shorten [sim] duration or pass --allow-long")
+    return work
+
+
 def load_sim_mesh(src, *, what: str = "mesh") -> TetMesh:
     """A positively oriented tet mesh without unused vertices from ``src``.
 
@@ -122,7 +143,8 @@ def _warn_inverted(inverted, what: str) -> list[int]:
 
 
 def simulate(mesh, scene, *, device: str = "cpu", reference=None, out_dir=None, render_dir=None,
-             progress: bool = True, chamfer_samples: int | None = None, name: str = "Object") -> dict:
+             progress: bool = True, chamfer_samples: int | None = None, name: str = "Object",
+             allow_long: bool = False) -> dict:
     """Simulate a tet mesh in a scene and report (method.md §10).
 
     Args:
@@ -140,6 +162,7 @@ def simulate(mesh, scene, *, device: str = "cpu", reference=None, out_dir=None, 
         progress: show a progress bar (on stderr, and only when it is a terminal).
         chamfer_samples: surface samples per mesh for ``sim_chamfer`` (method.md §9: 100,000).
         name: prim name of the body in USD for a scene without ``[[bodies]]``.
+        allow_long: run even when the estimated work exceeds :data:`MAX_WORK`.
 
     Returns:
         The report dict: ``frames``, ``steps``, ``seconds``, ``steps_per_second`` (of the
@@ -159,8 +182,17 @@ def simulate(mesh, scene, *, device: str = "cpu", reference=None, out_dir=None, 
     from holowarp.progress import bar, bars_enabled
 
     device = resolve_device(device)
+    if out_dir is not None:
+        from holowarp.fileio import check_output_dir
+
+        out_dir = check_output_dir(out_dir, what="--out")  # before any work, not after it
+    if render_dir is not None:
+        from holowarp.fileio import check_output_dir
+
+        render_dir = check_output_dir(render_dir, what="--render folder")
     scene = load_scene(scene)
     specs, meshes, ref, default, transforms = _load_bodies(mesh, scene, reference)
+    check_work(scene, meshes, allow_long=allow_long)
     ref_meshes = [ref if sp.mesh is None else meshes[k] for k, sp in enumerate(specs)] if ref is not None else None
     pbar = bar(scene.num_steps * (2 if ref is not None else 1), desc=scene.name, unit="step", progress=progress)
     try:

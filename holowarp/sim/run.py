@@ -87,7 +87,7 @@ def run_scene(scene: Scene, mesh, *, transform=None, device: str = "cpu", progre
                 raise NonFiniteStateError(
                     f"scene {scene.name!r}: non-finite positions after step {steps} (t = {tb:.4f} s); "
                     f"the inputs are likely out of range (youngs_modulus {_materials(scene)} Pa, dt {sim.dt:g} s, "
-                    f"gravity {list(sim.gravity)} m/s^2) or the mesh has degenerate tets")
+                    f"gravity {list(sim.gravity)} m/s^2, {_placements(scene)}) or the mesh has degenerate tets")
     wp.synchronize_device(model.device)
     seconds += time.perf_counter() - t0
     return {
@@ -124,6 +124,12 @@ class _Recorder:
         return {"frames": np.stack(self.frames), "surface_points": np.stack(self.surf_pts),
                 "surface_force": np.stack(self.surf_f), "inverted": np.asarray(self.inverted),
                 "volume": np.asarray(self.volume), "com": np.stack(self.com), "penetration": np.asarray(self.pen)}
+
+
+def _placements(scene: Scene) -> str:
+    sizes = sorted({b.placement.size for b in scene.body_specs()})
+    speeds = sorted({float(np.linalg.norm(b.placement.velocity)) for b in scene.body_specs()})
+    return f"size {', '.join(f'{v:g}' for v in sizes)} m, initial speed {', '.join(f'{v:g}' for v in speeds)} m/s"
 
 
 def _materials(scene: Scene) -> str:

@@ -191,11 +191,20 @@ def _num(src, sec, key, v, *, lo=None, hi=None, lo_open=False, integer=False):
     return v
 
 
-def _vec(src, sec, key, v, n):
+#: Largest magnitude accepted for a length (m), speed (m/s) or acceleration (m/s^2) of a
+#: scene: far beyond any scene this solver is for, and far below where float32 positions
+#: and masses overflow (a size of 1e30 m would otherwise run and report NaN volumes).
+MAX_MAGNITUDE = 1.0e4
+
+
+def _vec(src, sec, key, v, n, *, bound=None):
     where = f"{src}: [{sec}] {key}"
     if not isinstance(v, (list, tuple)) or len(v) != n:
         raise SceneError(f"{where}: expected a list of {n} numbers, got {v!r}")
-    return tuple(_num(src, sec, key, x) for x in v)
+    out = tuple(_num(src, sec, key, x) for x in v)
+    if bound is not None and max((abs(x) for x in out), default=0.0) > bound:
+        raise SceneError(f"{where}: components must lie within +-{bound:g}, got {list(out)}")
+    return out
 
 
 def _table(src, data, sec, allowed, where=None):
@@ -226,7 +235,7 @@ def parse_scene(data: dict, *, source: str = "<scene>") -> Scene:
         substeps=_num(src, "sim", "substeps", t.get("substeps", d.substeps), lo=1, hi=1024, integer=True),
         iterations=_num(src, "sim", "iterations", t.get("iterations", d.iterations), lo=1, hi=10000, integer=True),
         duration=_num(src, "sim", "duration", t.get("duration", d.duration), lo=0.0, lo_open=True),
-        gravity=_vec(src, "sim", "gravity", t.get("gravity", d.gravity), 3),
+        gravity=_vec(src, "sim", "gravity", t.get("gravity", d.gravity), 3, bound=MAX_MAGNITUDE),
         damping=_num(src, "sim", "damping", t.get("damping", d.damping), lo=0.0),
     )
     if sim.duration < sim.dt:
@@ -302,11 +311,11 @@ def _material(src, sec, t, d: MaterialSettings) -> MaterialSettings:
 
 def _placement(src, sec, t, d: Placement) -> Placement:
     return Placement(
-        size=_num(src, sec, "size", t.get("size", d.size), lo=0.0),
+        size=_num(src, sec, "size", t.get("size", d.size), lo=0.0, hi=MAX_MAGNITUDE),
         rotation=_vec(src, sec, "rotation", t.get("rotation", d.rotation), 3),
-        center_xy=_vec(src, sec, "center_xy", t.get("center_xy", d.center_xy), 2),
-        height=_num(src, sec, "height", t.get("height", d.height), lo=0.0),
-        velocity=_vec(src, sec, "velocity", t.get("velocity", d.velocity), 3),
+        center_xy=_vec(src, sec, "center_xy", t.get("center_xy", d.center_xy), 2, bound=MAX_MAGNITUDE),
+        height=_num(src, sec, "height", t.get("height", d.height), lo=0.0, hi=MAX_MAGNITUDE),
+        velocity=_vec(src, sec, "velocity", t.get("velocity", d.velocity), 3, bound=MAX_MAGNITUDE),
     )
 
 
@@ -380,6 +389,8 @@ def load_scene(name_or_path: "str | os.PathLike | Scene") -> Scene:
             data = tomllib.load(f)
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{path}: not valid TOML ({e})") from None
+    except UnicodeDecodeError as e:  # binary files, other encodings: TOML is UTF-8
+        raise SceneError(f"{path}: not UTF-8 text, so not a TOML scene (byte {e.start}: {e.reason})") from None
     except OSError as e:
         raise SceneError(f"{path}: cannot read ({e.strerror})") from None
     return parse_scene(data, source=str(path))
