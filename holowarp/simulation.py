@@ -182,6 +182,8 @@ def simulate(mesh, scene, *, device: str = "cpu", reference=None, out_dir=None, 
     from holowarp.progress import bar, bars_enabled
 
     device = resolve_device(device)
+    if chamfer_samples is not None and int(chamfer_samples) < 100:
+        raise SimulationError(f"chamfer_samples must be >= 100, got {chamfer_samples}")
     if out_dir is not None:
         from holowarp.fileio import check_output_dir
 
@@ -281,7 +283,7 @@ def _reference_report(report, run, ref_run, meshes, ref_meshes, default, chamfer
     from holowarp.frame import unit_cube_transform
     from holowarp.metrics.surface import SurfaceMetricSettings
 
-    n = chamfer_samples or SurfaceMetricSettings().num_samples
+    n = SurfaceMetricSettings().num_samples if chamfer_samples is None else int(chamfer_samples)
     model, rmodel = run["model"], ref_run["model"]
     ours_d, ref_d = _mesh_of_bodies(meshes, default), _mesh_of_bodies(ref_meshes, default)
     pa_idx, pb_idx = _particles_of(model, default), _particles_of(rmodel, default)

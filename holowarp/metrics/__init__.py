@@ -8,7 +8,6 @@
   against a ground truth, with the JSON contract :data:`METRIC_KEYS`.
 """
 
-from holowarp.frame import unit_cube_transform  # TEMP: until holowarp.simulation imports holowarp.frame
 from holowarp.metrics.evaluate import METRIC_KEYS, EvaluationError, evaluate_mesh, load_surface
 
 __all__ = ["METRIC_KEYS", "EvaluationError", "evaluate_mesh", "load_surface"]
