@@ -429,6 +429,9 @@ class GeometryConfig:
 
     Attributes:
         w_mask, w_norm: weights of L_mask (20) and L_norm (0.25).
+        w_prior: weight of the normal-map prior in the mesh-only blocks when the dataset has
+            normal maps: mean ``1 - cos`` between the mesh's rendered normals and the given
+            ones where both cover a pixel (issue 12; 0 = off, the paper's blocks).
         c_w: inner coefficient of L_w (2e-4, "normalised by the number of tet spheres", which
             is 1 here), multiplied by lam(t) = (1 - t/T)^2.
         c_hc: inner coefficient of L_HC, also multiplied by lam(t). The paper gives 2e-4
@@ -453,6 +456,7 @@ class GeometryConfig:
 
     w_mask: float = 20.0
     w_norm: float = 0.25
+    w_prior: float = 0.0
     c_hc: float = 2e-3
     c_w: float = 2e-4
     c_barrier: float = 2e-4

@@ -331,6 +331,29 @@ def test_geometry_block_fits_silhouettes_without_inverting_tets(sphere_scene):
     assert model.mesh().volume() == pytest.approx(ball, rel=0.2)
 
 
+def test_normal_prior_in_geometry_blocks_matches_a_numpy_cosine_and_is_logged(sphere_scene):
+    from holowarp.ops import rasterize_mesh
+    from holowarp.stages.geometry import GeometryBlock
+
+    ds, mesh = sphere_scene
+    phi = init_phi(mesh, ds, ds.train_idx, TopologyConfig())
+    carved, _ = mesh.submesh(phi[mesh.tets].mean(axis=1) < 0).keep_largest_component()
+    model = TetGaussians(carved, free_opacity=True)
+    blk = GeometryBlock(model, ds, ds.train_idx, GeometryConfig(w_prior=0.5), block_iters=4, total_mesh_iters=4)
+    v = int(ds.train_idx[2])
+    out = rasterize_mesh(blk.x, blk.faces, ds.viewmats[v], ds.K[v], ds.width, ds.height)
+    got = float(blk._normal_prior(out, v))
+    n, p = out["normal"].detach().numpy(), ds.normals[v]
+    sel = (out["alpha"].detach().numpy() > 0.5) & (np.linalg.norm(p, axis=-1) > 0.5)
+    cos = (n * p).sum(-1)[sel] / (np.linalg.norm(n, axis=-1)[sel] * np.linalg.norm(p, axis=-1)[sel])
+    assert sel.sum() > 50 and got == pytest.approx(float(np.mean(1 - cos)), rel=1e-4)
+    assert 0.0 < got < 0.7  # a carved staircase around the sphere: facing the right way, not aligned
+    assert "prior" in blk.step(0, 0, seed=1)
+    off = GeometryBlock(TetGaussians(carved, free_opacity=True), ds, ds.train_idx, GeometryConfig(), block_iters=4,
+                        total_mesh_iters=4)
+    assert off.normals is None and "prior" not in off.step(0, 0, seed=1)
+
+
 def _mask_error(model, ds) -> float:
     from holowarp.ops import rasterize_mesh
 

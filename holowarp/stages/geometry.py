@@ -146,6 +146,8 @@ class GeometryBlock:
         if optimizer_state is not None:
             self.opt.load_state_dict(optimizer_state)
         self.masks = torch.as_tensor(dataset.masks, device=dev)
+        self.normals = (torch.as_tensor(dataset.normals, device=dev)
+                        if dataset.normals is not None and config.w_prior > 0 else None)
         self.cache: dict = {}
         with torch.no_grad():
             self.floor = config.min_volume_fraction * signed_volumes_t(self.rest, model.tets).clamp_min(0)
@@ -164,6 +166,17 @@ class GeometryBlock:
                 self.cache[view] = (n.to(torch.float16), out["alpha"].to(torch.float16))
         n, a = self.cache[view]
         return n.float(), a.float()
+
+    def _normal_prior(self, out: dict, view: int):
+        """Mean ``1 - cos`` of the mesh's rendered normals against the dataset's normal map of
+        ``view`` where both cover the pixel; None without normal maps or with ``w_prior`` 0."""
+        if self.normals is None or self.cfg.w_prior <= 0:
+            return None
+        prior = self.normals[view]
+        sel = ((out["alpha"] > 0.5) & (prior.norm(dim=-1) > 0.5)).to(prior.dtype)
+        n = out["normal"]
+        cos = (n * prior).sum(-1) / (n.norm(dim=-1) * prior.norm(dim=-1)).clamp_min(1e-12)
+        return ((1.0 - cos) * sel).sum() / sel.sum().clamp_min(1.0)
 
     def step(self, k: int, t: int, seed: int) -> dict:
         """Block step ``k`` (global mesh iteration ``t``) on the view drawn from
@@ -185,6 +198,7 @@ class GeometryBlock:
         # data-dependent shape is a host sync); no such pixel gives 0.
         sel = ((out["alpha"] > 0) & (a_gs > 0.5)).to(x.dtype)
         l_norm = ((1.0 - (out["normal"] * n_gs).sum(-1)) * sel).sum() / sel.sum().clamp_min(1.0)
+        l_prior = self._normal_prior(out, view)
         lam = mesh_lambda(t, self.total)
         lam_cond = 1.0 if (not cfg.two_stage_hc or k >= self.block_iters // 2) else 0.0
         l_hc = en.hc_laplacian(x, self.bf_np, lam_cond=lam_cond) / self.mean_edge**2
@@ -192,12 +206,16 @@ class GeometryBlock:
         l_w, l_inv = en.biharmonic_and_inversion(x, p=p0 + (p1 - p0) * (t / max(self.total - 1, 1)))
         loss = (cfg.w_mask * l_mask + cfg.w_norm * l_norm + lam * (cfg.c_hc * l_hc + cfg.c_w * l_w)
                 + cfg.c_barrier * l_inv)
+        if l_prior is not None:
+            loss = loss + cfg.w_prior * l_prior
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         x_old = x.detach().clone()
         self.opt.step()
         self.reverted = self.reverted + revert_inverting_moves(x.data, x_old, self.model.tets, floor=self.floor)
         terms = {"loss": loss, "mask": l_mask, "norm": l_norm, "hc": l_hc, "w": l_w, "inv": l_inv}
+        if l_prior is not None:
+            terms["prior"] = l_prior
         return {**{k_: v.detach() for k_, v in terms.items()}, "lam": lam, "lam_cond": lam_cond}
 
     def finish(self) -> int:
