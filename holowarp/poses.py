@@ -43,7 +43,9 @@ def build_parser():
     p.add_argument("--min-registered", type=float, default=d.min_registered, metavar="F",
                    help=f"fail unless this fraction of the photos is posed (default {d.min_registered}, in (0, 1])")
     p.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default {d.seed})")
-    p.add_argument("--threads", type=int, default=d.threads, metavar="N", help="CPU threads (default -1: all cores)")
+    # dest differs from the common --threads so cli.run does not read COLMAP's -1 ("all cores") as holowarp's.
+    p.add_argument("--threads", dest="sfm_threads", type=int, default=d.threads, metavar="N",
+                   help="CPU threads for COLMAP (default -1: all cores)")
     p.add_argument("--overwrite", action="store_true", help="replace a COLMAP model already in DIR")
     cli.add_device(p, note="accepted for the common convention; structure from motion always runs on the CPU",
                    threads=False)
@@ -58,7 +60,7 @@ def _run(args) -> int:
     resolve_device(args.device)
     settings = SfMSettings(camera_model=args.camera_model, single_camera=not args.camera_per_image,
                            max_features=args.max_features, mask_features=args.mask_features,
-                           min_registered=args.min_registered, seed=args.seed, threads=args.threads)
+                           min_registered=args.min_registered, seed=args.seed, threads=args.sfm_threads)
     summary = run_sfm(args.images, args.masks, args.out, settings=settings, overwrite=args.overwrite,
                       progress=not args.quiet)
     print(json.dumps({k: summary[k] for k in ("photos", "registered", "unregistered", "points3D",
