@@ -35,7 +35,9 @@ __all__ = [
     "TopologyConfig",
     "GeometryConfig",
     "CleanupConfig",
+    "SceneConfig",
     "ReconConfig",
+    "kept_components",
     "preset",
     "PRESETS",
 ]
@@ -384,6 +386,11 @@ class TopologyConfig:
             view shows to be empty (outside a silhouette or in front of the stage-0 surface).
         continuous_opacity: False runs the ablation "w/o continuous opacity": one free
             opacity per tet instead of the vertex field phi.
+        min_component: which face-connected components a prune keeps when it splits the
+            mesh. ``None`` (one object, method.md §5): only the largest. A fraction in
+            (0, 1] (scene level, method.md §11, ``reconstruct --scene-level``): every
+            component with at least this fraction of the tets the prune keeps (the largest
+            always stays).
     """
 
     s: float = 1.0
@@ -421,6 +428,10 @@ class TopologyConfig:
     pit_rounds: int = 3
     genus_guard: bool = False
     continuous_opacity: bool = True
+    min_component: float | None = None
+
+    def __post_init__(self):
+        _check_min_component(self.min_component, "TopologyConfig")
 
 
 @dataclass(frozen=True)
@@ -479,12 +490,80 @@ class CleanupConfig:
         cap_dihedral_deg: boundary tets with a smaller minimum dihedral angle are dropped.
         max_cap_rounds: passes of cap removal.
         max_repair_rounds: cap on manifold-repair rounds (each round fixes every defect found).
+        min_component: which face-connected components survive, as
+            :attr:`TopologyConfig.min_component`: ``None`` only the largest (one object), a
+            fraction every component with at least that fraction of the tets (scene level).
     """
 
     degenerate_rel: float = 1e-3
     cap_dihedral_deg: float = 5.0
     max_cap_rounds: int = 5
     max_repair_rounds: int = 50
+    min_component: float | None = None
+
+    def __post_init__(self):
+        _check_min_component(self.min_component, "CleanupConfig")
+
+
+def _check_min_component(f, where: str) -> None:
+    if f is not None and not (isinstance(f, (int, float)) and 0.0 < f <= 1.0):
+        raise ValueError(f"{where}.min_component must be None or a fraction in (0, 1], got {f!r}")
+
+
+def kept_components(labels, n: int, min_component: float | None):
+    """Which of ``n`` face-connected components (``labels`` (M,) int, one per tet) survive:
+    (M,) bool. ``min_component`` ``None``: the largest only (ties: the lowest label, as
+    ``np.argmax``); a fraction: every component with at least that fraction of the M tets,
+    and the largest whatever its share."""
+    import numpy as np
+
+    sizes = np.bincount(labels, minlength=n)
+    keep = np.zeros(n, dtype=bool)
+    keep[int(np.argmax(sizes))] = True
+    if min_component is not None:
+        keep |= sizes >= min_component * len(labels)
+    return keep[labels]
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Scene-level reconstruction (method.md §11, ``reconstruct --scene-level``): several
+    objects in one capture, carved from one convex hull, then separated.
+
+    Attributes:
+        enabled: split the final mesh into objects and write the per-object outputs.
+        min_component: the prunes and the cleanup keep every face-connected component with
+            at least this fraction of the kept tets (copied into
+            :attr:`TopologyConfig.min_component` and :attr:`CleanupConfig.min_component`).
+        objects: how many objects the capture holds; ``None``: the dataset's ``objects/``
+            folders if it has them, else one per component. Fewer components than objects
+            means some touch, and the largest components are split by clustering.
+        color_weight: weight of the surfels' RGB (in [0, 1]) against their positions
+            (divided by the component's bounding-box diagonal) in the clustering features.
+        cluster_restarts: k-means runs per split; the one with the lowest distortion wins.
+        evaluate_objects: measure each object against its own ``objects/NAME/gt.obj``
+            (method.md §9 metrics in the report's ``scene`` section).
+        sim_size: largest side (m) of the largest object in ``scene.toml``; every object is
+            scaled by the same factor, so the scene keeps its proportions.
+        sim_drop: height (m) of the scene's lowest point above the ground in ``scene.toml``.
+    """
+
+    enabled: bool = False
+    min_component: float = 0.02
+    objects: int | None = None
+    color_weight: float = 1.0
+    cluster_restarts: int = 8
+    evaluate_objects: bool = True
+    sim_size: float = 0.1
+    sim_drop: float = 0.05
+
+    def __post_init__(self):
+        _check_min_component(self.min_component, "SceneConfig")
+        if self.objects is not None and not (isinstance(self.objects, int) and self.objects >= 1):
+            raise ValueError(f"SceneConfig.objects must be None or an integer >= 1, got {self.objects!r}")
+        if not (self.color_weight >= 0 and self.cluster_restarts >= 1 and self.sim_size > 0 and self.sim_drop >= 0):
+            raise ValueError("SceneConfig: color_weight and sim_drop must be >= 0, cluster_restarts >= 1, "
+                             "sim_size > 0")
 
 
 #: Quality measures understood by :func:`tet_quality` (codes of holowarp.kernels.improve).
@@ -615,6 +694,9 @@ class ReconConfig:
         schedule: order of events.
         improve: the element improvement after cleanup (method.md §7b); ``enabled=False``
             skips it (the paper's pipeline ends at cleanup).
+        scene: scene-level reconstruction (method.md §11); off by default. Turn it on with
+            :meth:`scene_level`, which also sets the prunes' and the cleanup's
+            ``min_component``.
         test_every: a dataset without its own test split (NeRF-synthetic without
             ``transforms_test.json``, NeuS/IDR, COLMAP) holds out every this-many-th view
             for the test metrics; ``report.json -> held_out`` lists them.
@@ -633,6 +715,7 @@ class ReconConfig:
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     cleanup: CleanupConfig = field(default_factory=CleanupConfig)
     improve: ImproveConfig = field(default_factory=ImproveConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
     test_every: int = 10
     checkpoint_every: int = 250
     seed: int = 0
@@ -658,6 +741,17 @@ class ReconConfig:
                 self.geometry, uniform_biharmonic=uniform_biharmonic, two_stage_hc=not single_stage_hc
             ),
         )
+
+    def scene_level(self, *, min_component: float | None = None, objects: int | None = None) -> "ReconConfig":
+        """The same config reconstructing a scene of several objects (method.md §11): every
+        component with at least ``min_component`` (default ``scene.min_component``) of the
+        kept tets survives the prunes and the cleanup, and the final mesh is split into
+        ``objects`` objects (default: from the dataset)."""
+        sc = replace(self.scene, enabled=True,
+                     min_component=self.scene.min_component if min_component is None else min_component,
+                     objects=self.scene.objects if objects is None else objects)
+        return replace(self, scene=sc, topology=replace(self.topology, min_component=sc.min_component),
+                       cleanup=replace(self.cleanup, min_component=sc.min_component))
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -15,7 +15,8 @@ derived from their rendered depth, and ``L_prior`` the same against the dataset'
 maps (only when it has them).
 
 Pruning (§5) deletes tets with alpha < 0.1 and then vertices no tet uses; if that splits the
-mesh, the largest face-connected component is kept and the rest counted. After the FIRST
+mesh, the largest face-connected component is kept and the rest counted (scene level,
+``TopologyConfig.min_component``: every component above a size threshold). After the FIRST
 prune the surfel scales are recomputed (0.65 x mean centroid-to-vertex distance) and become
 learnable, and opacities become free parameters initialised from the field.
 
@@ -34,7 +35,7 @@ import torch
 
 from holowarp.camera import project_points
 from holowarp.carve import in_front_of_surface, inside_hull
-from holowarp.config import TopologyConfig
+from holowarp.config import TopologyConfig, kept_components
 from holowarp.manifold import restore_until_manifold
 from holowarp.tetgs import TetGaussians
 from holowarp.tetmesh import TetMesh
@@ -341,7 +342,9 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
       pruned, so topology follows the images, never the thickness of the tets.
 
     If pruning would empty the mesh, nothing is pruned (and the report says so). If it
-    splits the mesh, the largest face-connected component is kept and the rest counted.
+    splits the mesh, the largest face-connected component is kept and the rest counted;
+    with ``config.min_component`` (scene level, method.md §11) every component with at
+    least that fraction of the kept tets stays.
 
     Returns:
         dict: ``tets_before``, ``pruned`` (removed for low alpha), ``low_alpha``,
@@ -350,7 +353,8 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
         ``kept_cavity`` (low-alpha tets kept because sealed), ``kept_dents`` (low-alpha tets
         kept because three or more of their faces meet kept tets), ``kept_pits``,
         ``restored_for_manifold``, ``kept_for_genus``, ``genus_before``, ``genus_after``,
-        ``removed_components``, ``tets_removed_by_component``, ``tets_after``, ``emptied``.
+        ``removed_components``, ``tets_removed_by_component``, ``tets_after``, ``emptied``,
+        and with ``config.min_component`` ``kept_components``.
     """
     with torch.no_grad():
         alpha = model.opacities().cpu().numpy()
@@ -374,35 +378,44 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
     info["raw_non_manifold"] = int(len(raw.non_manifold_edges()) + len(raw.non_manifold_vertices()))
     info["kept_dents"] = _keep_dents(drop, adj, config)
     info["kept_pits"] = _keep_pits(mesh, drop, config)
-    keep, ids, n, removed = _guarded_keep(mesh, drop, info)
+    keep, ids, n, removed, n_kept = _guarded_keep(mesh, drop, info, config.min_component)
     info["genus_before"] = int(mesh.genus())
     info["kept_for_genus"] = 0
-    if evidence is not None and n == 1 and TetMesh(mesh.vertices, T[ids], validate=False).genus() != info["genus_before"]:
+    # One object: the guard applies when the prune leaves one piece. A scene: when the prune
+    # keeps as many pieces as there were (it split no object; the genus is then the sum of
+    # the objects' genera, so a change still means a tunnel opened or a handle was cut).
+    unsplit = n == 1 if config.min_component is None else n_kept == mesh.num_components()
+    if evidence is not None and unsplit and TetMesh(mesh.vertices, T[ids], validate=False).genus() != info["genus_before"]:
         blind = drop & ~np.asarray(evidence, dtype=bool)
         info["kept_for_genus"] = int(blind.sum())
         drop &= ~blind
-        keep, ids, n, removed = _guarded_keep(mesh, drop, info)
+        keep, ids, n, removed, n_kept = _guarded_keep(mesh, drop, info, config.min_component)
     info["pruned"] = int(M - len(ids) - removed)
     model.keep(ids)
-    info.update(removed_components=max(n - 1, 0), tets_removed_by_component=removed, tets_after=model.num_tets,
+    info.update(removed_components=max(n - n_kept, 0), tets_removed_by_component=removed, tets_after=model.num_tets,
                 genus_after=int(model.mesh().genus()))
+    if config.min_component is not None:
+        info["kept_components"] = n_kept
     return info
 
 
-def _guarded_keep(mesh: TetMesh, drop: np.ndarray, info: dict):
-    """The manifold guard and the largest component: (keep mask, kept ids, components,
-    tets removed with the smaller components); ``info["restored_for_manifold"]`` is set."""
+def _guarded_keep(mesh: TetMesh, drop: np.ndarray, info: dict, min_component: float | None = None):
+    """The manifold guard and the component rule (:func:`holowarp.config.kept_components`:
+    the largest only, or every one above ``min_component`` of the kept tets): (keep mask,
+    kept ids, components, tets removed with the dropped components, components kept);
+    ``info["restored_for_manifold"]`` is set."""
     T = mesh.tets
     keep, restored = restore_until_manifold(mesh.vertices, T, ~drop, drop)
     info["restored_for_manifold"] = restored
     labels, n = TetMesh(mesh.vertices, T[keep], validate=False).components()
     ids = np.flatnonzero(keep)
-    removed = 0
+    removed, n_kept = 0, min(n, 1)
     if n > 1:
-        largest = labels == np.argmax(np.bincount(labels))
-        removed = int((~largest).sum())
-        ids = ids[largest]
-    return keep, ids, n, removed
+        kept = kept_components(labels, n, min_component)
+        removed = int((~kept).sum())
+        n_kept = len(np.unique(labels[kept]))
+        ids = ids[kept]
+    return keep, ids, n, removed, n_kept
 
 
 def _corner_solid_angles(V: np.ndarray, T: np.ndarray) -> np.ndarray:
@@ -490,6 +503,8 @@ def prune_message(info: dict, alpha: float) -> str:
     msg = (f"prune at iteration {info['iteration']}: {info['pruned']} tets below alpha {alpha} removed, "
            f"{info['tets_after']} remain")
     if info.get("removed_components"):
-        msg += (f"; pruning split the mesh, kept the largest component and removed {info['removed_components']} "
+        kept = ("the largest component" if "kept_components" not in info
+                else f"{info['kept_components']} component(s) above the size threshold")
+        msg += (f"; pruning split the mesh, kept {kept} and removed {info['removed_components']} "
                 f"other component(s) ({info['tets_removed_by_component']} tets)")
     return msg
