@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from holowarp.config import kept_components
 from holowarp.tetmesh import TET_FACES, TetMesh
 
 __all__ = ["restore_until_manifold", "repair_manifold", "vertex_to_tets", "fans"]
@@ -88,11 +89,15 @@ def restore_until_manifold(
     return keep, restored
 
 
-def repair_manifold(mesh: TetMesh, *, max_rounds: int = 50) -> tuple[np.ndarray, dict]:
+def repair_manifold(mesh: TetMesh, *, max_rounds: int = 50,
+                    min_component: float | None = None) -> tuple[np.ndarray, dict]:
     """Remove the minority fans around non-manifold boundary edges and vertices until the
     boundary is manifold (see the module docstring).
 
-    Vertices are never renumbered here, so the result is a mask over ``mesh.tets``.
+    A removal that splits the mesh keeps its largest component (``min_component`` None, one
+    object) or every component with at least that fraction of the tets (scene level,
+    :func:`holowarp.config.kept_components`). Vertices are never renumbered here, so the
+    result is a mask over ``mesh.tets``.
 
     Returns:
         (keep, info): keep (M,) bool over the input tets; info with ``removed_tets``,
@@ -132,7 +137,7 @@ def repair_manifold(mesh: TetMesh, *, max_rounds: int = 50) -> tuple[np.ndarray,
         sub = TetMesh(mesh.vertices, mesh.tets[keep], validate=False)
         labels, n = sub.components()
         if n > 1:
-            largest = labels == np.argmax(np.bincount(labels))
+            largest = kept_components(labels, n, min_component)
             keep[np.flatnonzero(keep)[~largest]] = False
             sub = TetMesh(mesh.vertices, mesh.tets[keep], validate=False)
         current = sub

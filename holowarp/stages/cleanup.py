@@ -96,7 +96,7 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
         work = TetMesh(mesh.vertices, t[kept], validate=False)
     else:
         info["tets_removed_by_component"] = 0
-    keep, rep = repair_manifold(work, max_rounds=config.max_repair_rounds)
+    keep, rep = repair_manifold(work, max_rounds=config.max_repair_rounds, min_component=config.min_component)
     kept = kept[keep]
     info["tets_removed_for_manifold"] = rep["removed_tets"]
     out, _ = TetMesh(mesh.vertices, t[kept], validate=False).remove_unused_vertices()
