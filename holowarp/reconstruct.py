@@ -1,7 +1,8 @@
 """``python -m holowarp.reconstruct [DATASET] --out DIR``: the product's main job.
 
 Reconstructs one connected, manifold, inversion-free tet mesh with surfels bound to it from
-multi-view images (method.md §3–§8). Without DATASET it synthesises the built-in default
+multi-view images (method.md §3–§8); with ``--scene-level`` one such mesh per object of a
+capture of several (method.md §11, :mod:`holowarp.stages.objects`). Without DATASET it synthesises the built-in default
 object (bob, genus 1) and reconstructs it. See :func:`holowarp.pipeline.reconstruct`.
 """
 
@@ -38,6 +39,16 @@ def build_parser():
                    help="without a test split in the dataset, hold out every N-th view for the test metrics (default 10)")
     p.add_argument("--no-improve", action="store_true",
                    help="skip the element improvement after cleanup (method.md §7b; the paper's pipeline ends at cleanup)")
+    p.add_argument("--scene-level", action="store_true",
+                   help="several objects in one capture (method.md §11): keep every component above --min-component, "
+                        "split the result into objects and write DIR/objects/NAME/tetmesh.vtu, a multi-body "
+                        "DIR/scene.usda and DIR/scene.toml for holowarp.simulate")
+    p.add_argument("--min-component", type=float, default=None, metavar="F",
+                   help="with --scene-level: keep components with at least this fraction of the kept tets, in (0, 1] "
+                        "(default 0.02)")
+    p.add_argument("--objects", type=int, default=None, metavar="N",
+                   help="with --scene-level: the capture holds N objects (default: the dataset's objects/ folders, "
+                        "else one per component); touching objects are split by clustering")
     cli.add_device(p)
     cli.add_quiet(p)
     return p
@@ -72,6 +83,16 @@ def config_from_args(args):
         cfg = replace(cfg, test_every=args.test_every)
     if args.no_improve:
         cfg = replace(cfg, improve=replace(cfg.improve, enabled=False))
+    if not args.scene_level:
+        for flag, v in (("--min-component", args.min_component), ("--objects", args.objects)):
+            if v is not None:
+                cli.fail(f"{flag}: only with --scene-level")
+    else:
+        if args.min_component is not None and not 0 < args.min_component <= 1:
+            cli.fail(f"--min-component {args.min_component}: must lie in (0, 1]")
+        if args.objects is not None and args.objects < 1:
+            cli.fail(f"--objects {args.objects}: must be >= 1")
+        cfg = cfg.scene_level(min_component=args.min_component, objects=args.objects)
     return cfg
 
 
@@ -88,6 +109,14 @@ def _run(args) -> int:
         f"PSNR {report['psnr_test']:.2f} dB, {report['seconds_total']:.0f} s"
         + (f", chamfer_l1 {m['chamfer_l1']:.4f}, volume_iou {m['volume_iou']:.3f}" if m else "")
     )
+    for o in (report.get("scene") or {}).get("objects", []):
+        om = o.get("metrics") or {}
+        print(f"  object {o['name']}: {o['tets']} tets, {o['components']} component(s), manifold={o['manifold']}, "
+              f"genus={o['genus']}, inverted={o['inverted']}"
+              + (f", chamfer_l1 {om['chamfer_l1']:.4f}" if om else ""))
+    if report.get("scene"):
+        print(f"simulate the scene: python -m holowarp.simulate {args.out}/tetmesh.vtu --scene "
+              f"{report['outputs']['scene_toml']} --out SIM")
     return 0
 
 

@@ -13,8 +13,9 @@ own test split, else ``null``), ``mesh_mask_iou`` and ``mesh_surfel_normal_cos``
 mesh against the test views' masks and the surfels' normals, :mod:`holowarp.metrics.views`,
 with ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews``, ``config``,
 ``improve`` (the element improvement's section, :func:`holowarp.stages.improve.improve`;
-``null`` when ``config.improve.enabled`` is off), and ``metrics`` (method.md §9) when the
-dataset has a ground-truth mesh. The mesh counts and qualities are those of the final mesh
+``null`` when ``config.improve.enabled`` is off), ``metrics`` (method.md §9) when the
+dataset has a ground-truth mesh, and ``scene`` (method.md §11, :func:`scene_objects`) when
+the run is scene level. The mesh counts and qualities are those of the final mesh
 (after improvement).
 """
 
@@ -26,7 +27,7 @@ import time
 
 import numpy as np
 
-__all__ = ["build_report", "finish_run", "image_metrics", "peak_rss_mb"]
+__all__ = ["build_report", "finish_run", "image_metrics", "peak_rss_mb", "scene_objects"]
 
 
 def peak_rss_mb() -> float:
@@ -127,7 +128,11 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
-    outputs = write_outputs(out_dir, model, clean, name=name)
+    outputs = write_outputs(out_dir, model, clean, name=name, usd=not config.scene.enabled)
+    scene = None
+    if config.scene.enabled:
+        scene = scene_objects(model, clean, data_dir, out_dir, config, device)
+        outputs.update(scene_usda=scene.pop("scene_usda"), scene_toml=scene.pop("scene_toml"))
     views = _view_results(model, clean, dataset, out_dir / "previews", history, device)
     state.add_time("export", time.perf_counter() - t0, 0)
 
@@ -147,7 +152,55 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
                           cleanup_info=cinfo, psnr=views["psnr"], ssim=views["ssim"], outputs=outputs,
                           previews=views["previews"], metrics=metrics, improve_info=improve_info)
     report.update(views["checks"])
+    if scene is not None:
+        report["scene"] = scene
     return report
+
+
+def scene_objects(model, mesh, data_dir, out_dir, config, device) -> dict:
+    """Scene level (method.md §11, :mod:`holowarp.stages.objects`): split the final ``mesh``
+    into objects, name them from ``data_dir/objects/NAME/gt.obj``, write their outputs, and
+    return the report's ``scene`` section: ``objects`` (per object ``name``, ``tets``,
+    ``vertices``, ``components``, ``genus``, ``manifold``, ``inverted`` (tets with signed
+    volume <= 0), ``centre`` (bbox centre, dataset world), ``source_component``, ``gt``,
+    ``tetmesh`` and ``metrics`` against its own ground truth when there is one), the
+    assignment's counts (:func:`holowarp.stages.objects.assign_objects`), ``min_component``,
+    ``scene_usda`` and ``scene_toml``."""
+    import torch
+
+    from holowarp.stages.objects import assign_objects, dataset_objects, name_objects, write_scene
+    from holowarp.surface_io import read_surface
+
+    sc = config.scene
+    gts = dataset_objects(data_dir)
+    expected = sc.objects if sc.objects is not None else (len(gts) or None)
+    with torch.no_grad():
+        pos, col = model.means().cpu().numpy(), model.colors().cpu().numpy()
+    objects, info = assign_objects(mesh, pos, col, expected, sc, seed=config.seed)
+    centres = [0.5 * (v.min(0) + v.max(0)) for v in (mesh.vertices[np.unique(mesh.tets[o])] for o in objects)]
+    gt_centres = {}
+    for n, p in gts.items():
+        V, _ = read_surface(p)
+        gt_centres[n] = 0.5 * (V.min(0) + V.max(0))
+    names = name_objects(centres, gt_centres)
+    paths = write_scene(out_dir, mesh, objects, names, col, config=sc)
+    rows = []
+    for ids, n, c, src in zip(objects, names, centres, info["source_component"]):
+        m = mesh.submesh(ids)
+        row = {"name": n, "tets": m.num_tets, "vertices": m.num_vertices, "components": m.num_components(),
+               "genus": m.genus(), "manifold": bool(m.manifold()["manifold"]),
+               "inverted": int(np.count_nonzero(m.signed_volumes() <= 0)), "centre": [float(x) for x in c],
+               "source_component": src, "gt": str(gts[n]) if n in gts else None,
+               "tetmesh": paths["objects"][n]}
+        if n in gts and sc.evaluate_objects:
+            from holowarp.metrics import evaluate_mesh
+
+            row["metrics"] = evaluate_mesh(m, gts[n], device=str(device))
+        rows.append(row)
+    missing = sorted(set(gts) - set(names))
+    return {"objects": rows, "min_component": sc.min_component, "missing": missing,
+            **{k: v for k, v in info.items() if k != "source_component"},
+            "scene_usda": paths["scene_usda"], "scene_toml": paths["scene_toml"]}
 
 
 def _view_results(model, mesh, dataset, prev, history, device) -> dict:

@@ -38,8 +38,8 @@ LAYERS = [
     ("api", ["holowarp"]),  # the package root: lazy re-exports of the public entry points
 ]
 
-#: The stages in method order (method.md §3-§7b); each may import only earlier ones.
-STAGE_ORDER = ["gaussian_init", "tet_init", "topology", "geometry", "cleanup", "improve", "export"]
+#: The stages in method order (method.md §3-§7b, then §11); each may import only earlier ones.
+STAGE_ORDER = ["gaussian_init", "tet_init", "topology", "geometry", "cleanup", "improve", "export", "objects"]
 
 #: The only packages whose code may launch Warp kernels.
 KERNEL_DRIVERS = ("holowarp.ops", "holowarp.sim")

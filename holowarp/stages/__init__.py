@@ -10,6 +10,8 @@ imports only earlier ones; ``tests/test_layers.py`` checks it).
 - ``cleanup``: §7, flip / drop / one component / manifold repair.
 - ``improve``: §7b, element improvement — flips, smoothing, sliver removal.
 - ``export``: §7, every output file.
+- ``objects``: §11, scene level — the final mesh split into objects, one tet mesh and one
+  deformable body each.
 
 The order of events between them is :meth:`holowarp.config.Schedule.events`; the pipeline
 that runs them is :mod:`holowarp.pipeline`.

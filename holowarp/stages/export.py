@@ -22,8 +22,11 @@ from holowarp.tetmesh import TetMesh
 __all__ = ["write_outputs", "render_test_views", "render_surfel_views"]
 
 
-def write_outputs(out_dir: Path, model: TetGaussians, mesh: TetMesh, *, material=None, name: str = "Object") -> dict:
-    """Write the mesh, surface, surfels and USD stage; returns their paths."""
+def write_outputs(out_dir: Path, model: TetGaussians, mesh: TetMesh, *, material=None, name: str = "Object",
+                  usd: bool = True) -> dict:
+    """Write the mesh, surface, surfels and (``usd``) the one-body USD stage; returns their
+    paths. A scene-level run writes its own ``scene.usda``, one body per object
+    (:mod:`holowarp.stages.objects`)."""
     from holowarp.gaussians import write_gaussians_ply
     from holowarp.mesh_io import write_tetmesh
     from holowarp.surface_io import write_surface
@@ -34,8 +37,9 @@ def write_outputs(out_dir: Path, model: TetGaussians, mesh: TetMesh, *, material
         "tetmesh_vtu": write_tetmesh(out_dir / "tetmesh.vtu", mesh),
         "tetmesh_msh": write_tetmesh(out_dir / "tetmesh.msh", mesh),
         "surface_obj": write_surface(out_dir / "surface.obj", mesh),
-        "scene_usda": write_usd(out_dir / "scene.usda", mesh, material=material or PhysicsMaterial(), name=name),
     }
+    if usd:
+        paths["scene_usda"] = write_usd(out_dir / "scene.usda", mesh, material=material or PhysicsMaterial(), name=name)
     with torch.no_grad():
         write_gaussians_ply(
             out_dir / "gaussians.ply",
