@@ -1,0 +1,291 @@
+"""Scene level (method.md §11, ``reconstruct --scene-level``, :mod:`holowarp.stages.objects`):
+the component rule of the prunes and the cleanup, the clustering split of touching objects,
+the names, the simulation scene, a tiny end-to-end run of two separated boxes, and (slow)
+spot, bob and a box against their single-object reconstructions."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from holowarp.config import CleanupConfig, TopologyConfig, kept_components, preset
+from holowarp.primitives import box_tetmesh
+from holowarp.stages.objects import assign_objects, cluster_split, name_objects, scene_toml
+
+RES = 32
+
+TWO_BOXES = """
+[[objects]]
+name = "red"
+box = [0.3, 0.3, 0.3]
+position = [0.0, 0.0, 0.0]
+color = [0.85, 0.2, 0.15]
+[[objects]]
+name = "blue"
+box = [0.25, 0.25, 0.4]
+position = [0.6, 0.0, 0.05]
+color = [0.15, 0.3, 0.85]
+"""
+
+
+# ---------------------------------------------------------------------------- the component rule
+def test_component_rule_keeps_the_largest_or_every_one_above_the_threshold():
+    labels = np.repeat([0, 1, 2, 3], [50, 30, 15, 5])  # 100 tets in four components
+    assert np.array_equal(kept_components(labels, 4, None), labels == 0)
+    assert np.array_equal(kept_components(labels, 4, 0.1), labels <= 2)  # 5 tets < 10% of 100
+    assert np.array_equal(kept_components(labels, 4, 0.9), labels == 0)  # the largest always stays
+    with pytest.raises(ValueError, match="min_component"):
+        TopologyConfig(min_component=0.0)
+    with pytest.raises(ValueError, match="min_component"):
+        CleanupConfig(min_component=1.5)
+
+
+def test_cleanup_keeps_both_separated_objects_only_at_scene_level():
+    from holowarp.stages.cleanup import cleanup
+    from holowarp.tetmesh import TetMesh
+
+    a = box_tetmesh((3, 3, 3), size=(1, 1, 1))
+    b = box_tetmesh((2, 2, 2), size=(0.6, 0.6, 0.6), origin=(3.0, 0.0, 0.0))
+    both = TetMesh(np.concatenate([a.vertices, b.vertices]), np.concatenate([a.tets, b.tets + a.num_vertices]))
+    one, _, info = cleanup(both, CleanupConfig())
+    assert one.num_tets == a.num_tets and info["components_removed"] == 1
+    two, _, info = cleanup(both, CleanupConfig(min_component=0.05))
+    assert two.num_tets == both.num_tets and two.num_components() == 2 and info["components_removed"] == 0
+
+
+# ---------------------------------------------------------------------------- clustering
+def _touching_blobs(rng):
+    """A 4 x 1 x 1 bar of tets: the first unit (x < 1) is one red object, the other three
+    units one blue object, touching across the plane x = 1. Returns (mesh, centroids,
+    noisy colours, oracle labels: True for the red object)."""
+    mesh = box_tetmesh((16, 4, 4), size=(4.0, 1.0, 1.0))
+    c = mesh.vertices[mesh.tets].mean(axis=1)
+    red = c[:, 0] < 1.0
+    colors = np.where(red[:, None], [0.8, 0.2, 0.15], [0.15, 0.3, 0.8]) + rng.normal(0, 0.05, (len(c), 3))
+    return mesh, c, colors.clip(0, 1), red
+
+
+def test_touching_objects_of_different_colours_are_split_by_clustering(rng):
+    mesh, c, colors, red = _touching_blobs(rng)
+    assert mesh.num_components() == 1
+    objects, info = assign_objects(mesh, c, colors, 2)
+    assert len(objects) == 2 and info["split_components"] == [{"component": 0, "tets": mesh.num_tets, "objects": 2}]
+    blue_ids, red_ids = objects  # largest first
+    assert np.array_equal(np.sort(red_ids), np.flatnonzero(red))
+    assert np.array_equal(np.sort(blue_ids), np.flatnonzero(~red))
+    assert info["unassigned_tets"] == 0
+    for ids in objects:
+        m = mesh.submesh(ids)
+        assert m.num_components() == 1 and m.manifold()["manifold"] and m.genus() == 0
+    # The positions alone would cut the bar in its middle (x = 2), not where the colours change.
+    alone = cluster_split(c, colors, 2, color_weight=0.0)
+    assert abs(np.mean(c[alone == alone[np.argmin(c[:, 0])], 0] < 1.0) - 1.0) > 0.3
+
+
+def test_clusters_are_made_face_connected():
+    from holowarp.stages.objects import _connected_clusters
+
+    mesh = box_tetmesh((8, 1, 1), size=(8.0, 1.0, 1.0))
+    cell = np.floor(mesh.vertices[mesh.tets].mean(axis=1)[:, 0]).astype(int)
+    labels = (cell >= 4).astype(np.int64)
+    labels[cell == 1] = 1  # a stray piece of cluster 1 inside cluster 0, which it cuts in two
+    labels[(cell == 6) & (mesh.vertices[mesh.tets].mean(axis=1)[:, 1] > 0.5)] = 0  # and stray tets of 0 in 1
+    fixed = _connected_clusters(mesh.face_adjacency(), labels)
+    assert np.array_equal(fixed, (cell >= 4).astype(np.int64))
+
+
+def test_more_components_than_objects_keeps_the_largest_and_reports_the_rest():
+    from holowarp.tetmesh import TetMesh
+
+    a = box_tetmesh((3, 3, 3))
+    b = box_tetmesh((1, 1, 1), origin=(3.0, 0.0, 0.0))
+    m = TetMesh(np.concatenate([a.vertices, b.vertices]), np.concatenate([a.tets, b.tets + a.num_vertices]))
+    c = m.vertices[m.tets].mean(axis=1)
+    objects, info = assign_objects(m, c, np.full_like(c, 0.5), 1)
+    assert len(objects) == 1 and len(objects[0]) == a.num_tets and info["unassigned_tets"] == b.num_tets
+
+
+def test_objects_are_named_after_the_nearest_ground_truth():
+    gt = {"spot": [0.0, 0.0, 0.0], "bob": [1.0, 0.0, 0.0]}
+    assert name_objects([[0.95, 0.1, 0.0], [0.05, 0.0, 0.0]], gt) == ["bob", "spot"]
+    assert name_objects([[0.9, 0, 0], [5, 5, 5], [0, 0, 0]], gt) == ["bob", "object_0", "spot"]
+    assert name_objects([[0, 0, 0], [1, 1, 1]], {}) == ["object_0", "object_1"]
+    assert name_objects([[0, 0, 0], [1, 1, 1]], {"object_0": [1, 1, 1]}) == ["object_1", "object_0"]
+
+
+def test_the_simulation_scene_keeps_the_objects_relative_positions(tmp_path):
+    from holowarp.sim.scene import load_scene, placement_transform
+
+    a = box_tetmesh((2, 2, 2), size=(0.4, 0.4, 0.4), origin=(-0.5, -0.2, -0.1))
+    b = box_tetmesh((1, 1, 2), size=(0.2, 0.2, 0.3), origin=(0.3, 0.1, 0.05))
+    text = scene_toml([a, b], ["a.vtu", "b.vtu"], ["big", "small-1"])
+    (tmp_path / "scene.toml").write_text(text)
+    scene = load_scene(tmp_path / "scene.toml")
+    assert [s.name for s in scene.bodies] == ["big", "small_1"]
+    assert [Path(s.mesh).name for s in scene.bodies] == ["a.vtu", "b.vtu"]
+    placed = []
+    for m, sp in zip((a, b), scene.bodies):
+        R, s, pos = placement_transform(m.vertices, sp.placement)
+        assert np.allclose(R, np.eye(3)) and s == pytest.approx(0.1 / 0.4)
+        placed.append(m.vertices * s + pos)
+    # One scale and one translation for both: the layout is the reconstruction's, scaled.
+    k = 0.1 / 0.4
+    assert np.allclose(placed[0] - k * a.vertices, placed[1][0] - k * b.vertices[0])
+    assert min(p[:, 2].min() for p in placed) == pytest.approx(0.05)
+
+
+# ---------------------------------------------------------------------------- end to end, tiny
+@pytest.fixture(scope="module")
+def two_boxes(tmp_path_factory):
+    from holowarp.scene_synth import synthesize_scene
+
+    root = tmp_path_factory.mktemp("two_boxes")
+    (root / "scene.toml").write_text(TWO_BOXES)
+    synthesize_scene(root / "scene.toml", root / "data", views=24, res=RES, progress=False)
+    (root / "data" / "gt.obj").unlink()  # the whole scene's metrics are the single-object path's, tested elsewhere
+    return root / "data"
+
+
+def tiny_scene_config():
+    """The fast preset shrunk to a couple of hundred iterations at 32 x 32, coarse tets."""
+    cfg = preset("fast").scaled(0.1)
+    cfg = replace(cfg, resolution=RES, checkpoint_every=40, tet_init=replace(cfg.tet_init, edge_length_fac=0.08))
+    cfg = cfg.scene_level()
+    return replace(cfg, scene=replace(cfg.scene, evaluate_objects=False))
+
+
+@pytest.fixture(scope="module")
+def tiny_scene_run(two_boxes, tmp_path_factory, one_torch_thread):
+    from holowarp.pipeline import reconstruct
+
+    out = tmp_path_factory.mktemp("scene_run") / "run"
+    return out, reconstruct(two_boxes, out, config=tiny_scene_config(), progress=False)
+
+
+def test_two_separated_boxes_give_two_named_clean_objects(tiny_scene_run):
+    from holowarp import read_tetmesh
+
+    out, report = tiny_scene_run
+    scene = report["scene"]
+    assert sorted(o["name"] for o in scene["objects"]) == ["blue", "red"]
+    assert scene["split_components"] == [] and scene["unassigned_tets"] == 0 and scene["missing"] == []
+    for o in scene["objects"]:
+        assert (o["components"], o["manifold"], o["inverted"], o["genus"]) == (1, True, 0, 0), o
+        m = read_tetmesh(out / "objects" / o["name"] / "tetmesh.vtu")
+        assert m.num_tets == o["tets"] and np.all(m.signed_volumes() > 0)
+    # The blue box is the one at +x (position 0.6 against 0.0 in the scene file).
+    x = {o["name"]: o["centre"][0] for o in scene["objects"]}
+    assert x["blue"] > x["red"]
+    # The whole scene stays the single-object outputs: both objects in tetmesh.vtu.
+    assert report["components"] == 2 and read_tetmesh(out / "tetmesh.vtu").num_tets == sum(
+        o["tets"] for o in scene["objects"])
+    assert json.loads((out / "report.json").read_text())["scene"]["objects"] == scene["objects"]
+
+
+def test_the_scene_usd_has_one_deformable_body_per_object(tiny_scene_run):
+    from pxr import Usd, UsdGeom
+
+    out, report = tiny_scene_run
+    stage = Usd.Stage.Open(str(out / "scene.usda"))
+    tets = {p.GetParent().GetName(): len(UsdGeom.TetMesh(p).GetTetVertexIndicesAttr().Get())
+            for p in stage.Traverse() if p.IsA(UsdGeom.TetMesh)}
+    assert tets == {o["name"]: o["tets"] for o in report["scene"]["objects"]}
+    for name in tets:
+        # Authored apiSchemas: GetAppliedSchemas() hides the codeless Omni Physics ones.
+        schemas = stage.GetPrimAtPath(f"/World/{name}").GetMetadata("apiSchemas").GetAddedOrExplicitItems()
+        assert "OmniPhysicsDeformableBodyAPI" in list(schemas)
+
+
+def test_the_reconstructed_scene_falls_and_lands_stably(tiny_scene_run, tmp_path):
+    from holowarp.sim.scene import load_scene
+    from holowarp.simulation import simulate
+
+    out, report = tiny_scene_run
+    scene = load_scene(out / "scene.toml")
+    scene = replace(scene, sim=replace(scene.sim, duration=0.5))
+    rep = simulate(out / "tetmesh.vtu", scene, progress=False)
+    assert rep["nan"] is False and rep["max_inverted"] == 0
+    assert [b["name"] for b in rep["bodies"]] == [o["name"] for o in report["scene"]["objects"]]
+    for b, sp in zip(rep["bodies"], scene.bodies):
+        # Dropped from 5 cm: after 0.5 s each body rests on the ground (its centre at about half its height).
+        assert 0.0 < b["com_end"][2] < sp.placement.height, b
+
+
+def test_scene_flags_need_scene_level_and_valid_values(tmp_path, capsys):
+    from holowarp.reconstruct import build_parser, config_from_args, main
+
+    assert main([str(tmp_path), "--out", str(tmp_path / "o"), "--objects", "2", "--quiet"]) == 2
+    assert "--objects: only with --scene-level" in capsys.readouterr().err
+    assert main([str(tmp_path), "--out", str(tmp_path / "o"), "--scene-level", "--min-component", "0",
+                 "--quiet"]) == 2
+    assert "--min-component 0.0: must lie in (0, 1]" in capsys.readouterr().err
+    cfg = config_from_args(build_parser().parse_args(["d", "--out", "o", "--scene-level", "--min-component", "0.1",
+                                                      "--objects", "3"]))
+    assert (cfg.scene.enabled, cfg.scene.objects, cfg.topology.min_component, cfg.cleanup.min_component) == (
+        True, 3, 0.1, 0.1)
+    assert preset("fast").topology.min_component is None and preset("fast").cleanup.min_component is None
+
+
+# ---------------------------------------------------------------------------- slow: spot, bob and a box
+THREE = """
+[[objects]]
+mesh = "{spot}"
+name = "spot"
+position = [0.0, 0.0, 0.0]
+[[objects]]
+mesh = "{bob}"
+name = "bob"
+position = [1.5, 0.0, 0.0]
+[[objects]]
+box = [0.6, 0.6, 0.6]
+name = "box"
+position = [0.75, 1.4, 0.0]
+color = [0.3, 0.55, 0.8]
+"""
+
+#: Genus of each object of THREE.
+GENUS = {"spot": 0, "bob": 1, "box": 0}
+#: Image side (px) of the single-object runs: the fast preset's.
+SINGLE_RES = 128
+#: The scene is rendered this many times larger (and tetrahedralised this many times finer),
+#: so each object covers about as many pixels and tets as alone (the scene is ~2.5 objects wide).
+SCENE_ZOOM = 2.5
+
+
+def _one_object(scene_text: str, name: str) -> str:
+    """The ``[[objects]]`` entry of ``scene_text`` named ``name``, as a scene of its own."""
+    entries = scene_text.split("[[objects]]")[1:]
+    return "[[objects]]" + next(e for e in entries if f'name = "{name}"' in e)
+
+
+@pytest.mark.slow
+def test_three_separated_objects_match_their_single_object_reconstructions(tmp_path):
+    """Each object of a three-object scene is within 1.3x of its own single-object
+    Chamfer-L1 (each measured in that object's evaluation frame) with the right genus."""
+    from conftest import shared_mesh
+
+    from holowarp.pipeline import reconstruct
+    from holowarp.scene_synth import synthesize_scene
+
+    (tmp_path / "three.toml").write_text(THREE.format(spot=shared_mesh("spot"), bob=shared_mesh("bob")))
+    res = int(round(SINGLE_RES * SCENE_ZOOM))
+    synthesize_scene(tmp_path / "three.toml", tmp_path / "scene", res=res, progress=False)
+    cfg = preset("fast")
+    scfg = replace(cfg, resolution=res, tet_init=replace(cfg.tet_init,
+                                                         edge_length_fac=cfg.tet_init.edge_length_fac / SCENE_ZOOM))
+    report = reconstruct(tmp_path / "scene", tmp_path / "scene_run", config=scfg.scene_level(), progress=False)
+    objects = {o["name"]: o for o in report["scene"]["objects"]}
+    assert sorted(objects) == sorted(GENUS)
+    for name, genus in GENUS.items():
+        o = objects[name]
+        assert (o["components"], o["manifold"], o["inverted"], o["genus"]) == (1, True, 0, genus), o
+        # The object alone: a one-object scene file renders it exactly as synth would, in its colours.
+        alone = tmp_path / f"{name}.toml"
+        alone.write_text(_one_object(THREE.format(spot=shared_mesh("spot"), bob=shared_mesh("bob")), name))
+        synthesize_scene(alone, tmp_path / f"{name}_data", res=SINGLE_RES, progress=False)
+        single = reconstruct(tmp_path / f"{name}_data", tmp_path / f"{name}_run", config=cfg, progress=False)
+        assert o["metrics"]["chamfer_l1"] <= 1.3 * single["metrics"]["chamfer_l1"], (name, o["metrics"], single["metrics"])
