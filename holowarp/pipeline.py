@@ -26,16 +26,8 @@ from holowarp.report import finish_run, peak_rss_mb
 from holowarp.runstate import Checkpoint, HistoryLog, Phase, RunState, check_resume
 from holowarp.stages.gaussian_init import train_gs2d
 from holowarp.stages.geometry import GeometryState, run_geometry_block
-from holowarp.stages.topology import (
-    EmptyEvidence,
-    GaussianOptimizers,
-    ViewTensors,
-    after_first_prune,
-    gaussian_step,
-    init_model_from_surfels,
-    prune,
-    prune_message,
-)
+from holowarp.stages.topology import (EmptyEvidence, GaussianOptimizers, ViewTensors, after_first_prune,
+                                      gaussian_step, init_model_from_surfels, prune, prune_message)
 from holowarp.tetgs import TetGaussians
 
 __all__ = ["ReconstructionError", "reconstruct"]
