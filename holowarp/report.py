@@ -124,7 +124,7 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
     clean, kept, cinfo = cleanup(model.mesh(), config.cleanup)
     model.apply_cleanup(kept, clean)
     state.add_time("cleanup", time.perf_counter() - t0, 0)
-    clean, improve_info = _improve(model, clean, config, device, state)
+    clean, improve_info = _improve(model, clean, dataset, config, device, state)
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -235,9 +235,10 @@ def _view_results(model, mesh, dataset, prev, history, device) -> dict:
                        "mesh_checks_per_view": checks["per_view"]}}
 
 
-def _improve(model, clean, config, device, state):
+def _improve(model, clean, dataset, config, device, state):
     """The element improvement (method.md §7b) of the cleaned mesh, the surfels following
-    their parent tets; returns (mesh, report section or None when disabled)."""
+    their parent tets and then refitted to the images (``ImproveConfig.refit_steps``);
+    returns (mesh, report section or None when disabled)."""
     if not config.improve.enabled:
         return clean, None
     from holowarp.stages.improve import improve
@@ -245,5 +246,9 @@ def _improve(model, clean, config, device, state):
     t0 = time.perf_counter()
     mesh, parent, info = improve(clean, config.improve, device=str(device))
     model.apply_improve(mesh, parent)
+    from holowarp.stages.topology import refit_appearance
+
+    info["refit"] = refit_appearance(model, dataset, config.topology, config.improve.refit_steps,
+                                     seed=config.seed, device=device)
     state.add_time("improve", time.perf_counter() - t0, 0)
     return mesh, info

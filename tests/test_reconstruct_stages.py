@@ -448,3 +448,24 @@ def test_surfels_follow_the_element_improvement_through_the_parent_map(rng):
     torch.testing.assert_close(model.log_scales.detach(), before["log_scales"][p] + torch.log(ratio)[:, None])
     with pytest.raises(ValueError, match="parent"):
         model.apply_improve(out, parent[:-1])
+
+
+def test_appearance_refit_fits_colours_and_leaves_the_mesh_alone(sphere_scene):
+    """After the element improvement moves surfels, a Gaussian-only refit must lower the
+    colour loss and touch neither vertices nor tets (the regression hash covers those)."""
+    from holowarp.stages.topology import refit_appearance
+
+    ds, _ = sphere_scene
+    h = 1.25 * RADIUS
+    mesh = box_tetmesh((8, 8, 8), (2 * h,) * 3, (-h,) * 3)
+    phi = init_phi(mesh, ds, ds.train_idx, TopologyConfig())
+    carved, _ = mesh.submesh(phi[mesh.tets].mean(axis=1) < 0).keep_largest_component()
+    model = TetGaussians(carved, free_opacity=True)
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():  # scrambled colours, as a flip hands a surfel a neighbour's
+        model.color_logit.data = torch.randn(model.color_logit.shape, generator=g) * 2.0
+    v0, t0 = model.vertices.detach().clone(), model.tets.clone()
+    assert refit_appearance(model, ds, TopologyConfig(), 0) == {"steps": 0, "rgb_before": None, "rgb_after": None}
+    info = refit_appearance(model, ds, TopologyConfig(), 60, seed=1)
+    assert info["steps"] == 60 and info["rgb_after"] < 0.8 * info["rgb_before"]
+    assert torch.equal(model.vertices.detach(), v0) and torch.equal(model.tets, t0)

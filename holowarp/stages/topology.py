@@ -41,6 +41,7 @@ from holowarp.tetgs import TetGaussians
 from holowarp.tetmesh import TetMesh
 
 __all__ = [
+    "refit_appearance",
     "GaussianOptimizers",
     "ViewTensors",
     "EmptyEvidence",
@@ -312,6 +313,29 @@ def gaussian_step(
         model.kappa.data.clamp_(lo / model.s, hi / model.s)
     terms["loss"] = loss
     return {k: v.detach() for k, v in terms.items()}
+
+
+def refit_appearance(model: TetGaussians, dataset, config: TopologyConfig, steps: int, *, seed: int = 0,
+                     device="cpu") -> dict:
+    """``steps`` Gaussian-only steps on random training views (colours, rotations, opacities
+    and log-scales; the vertices and tets stay as they are), after an operation that moved
+    surfels without refitting them (the element improvement, method.md §7b).
+
+    Returns ``{"steps", "rgb_before", "rgb_after"}``: the mean L1+D-SSIM colour loss of the
+    first and last tenth of the steps (None when ``steps`` is 0).
+    """
+    if steps <= 0:
+        return {"steps": 0, "rgb_before": None, "rgb_after": None}
+    tensors = ViewTensors(dataset, device)
+    opts = GaussianOptimizers(model, config, learn_scales=True)
+    train = np.asarray(dataset.train_idx)
+    # Seeded apart from the main loop's views (its stream is [seed, 0, i]).
+    views = train[np.random.default_rng([seed, 7]).integers(len(train), size=steps)]
+    rgb = [gaussian_step(model, dataset, int(v), config, opts, topology_phase=False, edges=None,
+                         tensors=tensors)["rgb"] for v in views]
+    tenth = max(1, steps // 10)
+    rgb = torch.stack(rgb).cpu().numpy()
+    return {"steps": int(steps), "rgb_before": float(rgb[:tenth].mean()), "rgb_after": float(rgb[-tenth:].mean())}
 
 
 def _one_minus_cos(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
