@@ -316,7 +316,7 @@ class PreflightConfig:
         min_views: fewest training views a reconstruction accepts.
         full_mask_fraction: a mask covering more of its frame than this leaves no background.
         hull_grid: nodes per side of the coarse carve that tests whether the masks' visual
-            hull spans a volume.
+            hull spans a volume (retried at 2x and 4x for thin objects).
     """
 
     min_views: int = 8

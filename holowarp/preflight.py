@@ -49,19 +49,27 @@ def preflight(dataset, config: PreflightConfig = PreflightConfig(), *, device: s
 
 def _check_visual_hull(dataset, grid: int, device: str) -> None:
     """Carve a coarse grid over the region the training cameras look at; fail if the carved
-    set cannot span a 3D hull (too few or inconsistent views)."""
+    set cannot span a 3D hull (too few or inconsistent views).
+
+    The grid spans the nearest camera's distance on each side, so a thin object (a plate a
+    few percent of its size thick) can fall between the nodes of ``grid``: the carve is
+    retried at 2x and 4x the resolution before the views are called inconsistent.
+    """
     views = dataset.train_idx
     focus, r = look_region(dataset.viewmats[views])
-    g = np.linspace(-r, r, grid)
-    pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3) + focus
-    inside = inside_hull(dataset, pts, views, device=device)
-    try:
-        scaled_hull(pts[inside])
-    except HullError as e:
-        raise ReconstructionError(
-            f"dataset {dataset.name}: the masks' visual hull degenerates ({e}); "
-            "the views do not agree on a 3D object (too few views, wrong poses or masks?)"
-        ) from None
+    for level in (grid, 2 * grid, 4 * grid):
+        g = np.linspace(-r, r, level)
+        pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3) + focus
+        inside = inside_hull(dataset, pts, views, device=device)
+        try:
+            scaled_hull(pts[inside])
+            return
+        except HullError as e:
+            error = e
+    raise ReconstructionError(
+        f"dataset {dataset.name}: the masks' visual hull degenerates ({error}); "
+        "the views do not agree on a 3D object (too few views, wrong poses or masks?)"
+    ) from None
 
 
 def prepare_dataset(dataset_path, out_dir, config, *, device: str = "cpu", progress: bool = True,

@@ -469,3 +469,26 @@ def test_appearance_refit_fits_colours_and_leaves_the_mesh_alone(sphere_scene):
     info = refit_appearance(model, ds, TopologyConfig(), 60, seed=1)
     assert info["steps"] == 60 and info["rgb_after"] < 0.8 * info["rgb_before"]
     assert torch.equal(model.vertices.detach(), v0) and torch.equal(model.tets, t0)
+
+
+def test_preflight_accepts_a_thin_plate_that_falls_between_the_coarse_nodes():
+    """A slab 3% of its size thick: the 24-node carve over the cameras' region finds no node
+    inside it, the refined carve does, so the views are not called inconsistent."""
+    from holowarp.carve import look_region
+    from holowarp.config import PreflightConfig
+    from holowarp.preflight import preflight
+    from holowarp.render_gt import GTRenderer
+    from holowarp.synthesis import protocol_cameras
+
+    slab = trimesh.creation.box(extents=(0.9, 0.9, 0.027))
+    res, n = 48, 16
+    viewmats, K = protocol_cameras(n, 1.6, res)
+    r = GTRenderer(slab.vertices, slab.faces, supersample=2)
+    alpha = np.stack([r.render(vm, K, res, res)["rgba"][..., 3] for vm in viewmats]).astype(np.float32)
+    ds = Dataset(images=np.repeat(alpha[..., None], 3, axis=-1), masks=alpha, K=np.repeat(K[None], n, axis=0),
+                 viewmats=viewmats, train_idx=np.arange(n), test_idx=np.arange(0), name="slab")
+    focus, half = look_region(viewmats)
+    g = np.linspace(-half, half, PreflightConfig().hull_grid)
+    coarse = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3) + focus
+    assert inside_hull(ds, coarse, ds.train_idx).sum() < 4  # the case the retry is for
+    preflight(ds)
