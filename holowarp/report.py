@@ -133,6 +133,7 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
     if config.scene.enabled:
         scene = scene_objects(model, clean, data_dir, out_dir, config, device)
         outputs.update(scene_usda=scene.pop("scene_usda"), scene_toml=scene.pop("scene_toml"))
+    _return_freed_memory()  # before the previews' off-screen renders, the run's peak
     views = _view_results(model, clean, dataset, out_dir / "previews", history, device)
     state.add_time("export", time.perf_counter() - t0, 0)
 
@@ -144,6 +145,7 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
 
         t0 = time.perf_counter()
         metrics = evaluate_mesh(clean, dataset.gt_mesh, dataset=dataset, device=str(device))
+        _return_freed_memory()
         views["previews"]["error_maps"] = write_error_maps(out_dir / "previews",
                                                            *evaluation_surfaces(clean, dataset.gt_mesh),
                                                            device=str(device))["paths"]
@@ -233,6 +235,20 @@ def _view_results(model, mesh, dataset, prev, history, device) -> dict:
     return {"psnr": psnr, "ssim": ssim, "previews": previews,
             "checks": {"mesh_mask_iou": checks["mesh_mask_iou"], "mesh_surfel_normal_cos": checks["mesh_surfel_normal_cos"],
                        "mesh_checks_per_view": checks["per_view"]}}
+
+
+def _return_freed_memory() -> None:
+    """Hand memory that Python and torch have freed back to the OS (glibc keeps freed heap
+    pages mapped, and the main loop's temporaries left hundreds of MB of them), so VTK's
+    renders at the end do not stack on top of it. A no-op where libc has no malloc_trim."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _improve(model, clean, dataset, config, device, state):
