@@ -309,6 +309,16 @@ def test_prune_removes_low_alpha_tets_and_keeps_the_largest_piece():
     assert emptied["emptied"] and model.num_tets == info["tets_after"]
 
 
+def _grid_carved_model(ds, cells: int) -> TetGaussians:
+    """Free-opacity model on a cells^3 tet grid over the sphere's hull box, carved by the
+    visual-hull field (largest piece): deterministic, unlike an fTetWild start."""
+    h = 1.25 * RADIUS
+    mesh = box_tetmesh((cells,) * 3, (2 * h,) * 3, (-h,) * 3)
+    phi = init_phi(mesh, ds, ds.train_idx, TopologyConfig())
+    carved, _ = mesh.submesh(phi[mesh.tets].mean(axis=1) < 0).keep_largest_component()
+    return TetGaussians(carved, free_opacity=True)
+
+
 def test_geometry_block_fits_silhouettes_without_inverting_tets(sphere_scene):
     ds, _ = sphere_scene
     # Start as the pipeline does after a prune: tets carved by the visual-hull field, a
@@ -316,11 +326,7 @@ def test_geometry_block_fits_silhouettes_without_inverting_tets(sphere_scene):
     # 12^3 grid over the hull's box, not the fixture's fTetWild mesh: fTetWild's output
     # differs from run to run (also on one thread), and some of its coarse carves left too
     # few tets to hold the sphere's volume within the tolerance below.
-    h = 1.25 * RADIUS
-    mesh = box_tetmesh((12, 12, 12), (2 * h,) * 3, (-h,) * 3)
-    phi = init_phi(mesh, ds, ds.train_idx, TopologyConfig())
-    carved, _ = mesh.submesh(phi[mesh.tets].mean(axis=1) < 0).keep_largest_component()
-    model = TetGaussians(carved, free_opacity=True)
+    model = _grid_carved_model(ds, 12)
     before = _mask_error(model, ds)
     ball = 4 / 3 * math.pi * RADIUS**3
     cfg = GeometryConfig(lr_start=4e-3, lr_end=2e-3)
@@ -456,11 +462,7 @@ def test_appearance_refit_fits_colours_and_leaves_the_mesh_alone(sphere_scene):
     from holowarp.stages.topology import refit_appearance
 
     ds, _ = sphere_scene
-    h = 1.25 * RADIUS
-    mesh = box_tetmesh((8, 8, 8), (2 * h,) * 3, (-h,) * 3)
-    phi = init_phi(mesh, ds, ds.train_idx, TopologyConfig())
-    carved, _ = mesh.submesh(phi[mesh.tets].mean(axis=1) < 0).keep_largest_component()
-    model = TetGaussians(carved, free_opacity=True)
+    model = _grid_carved_model(ds, 8)
     g = torch.Generator().manual_seed(5)
     with torch.no_grad():  # scrambled colours, as a flip hands a surfel a neighbour's
         model.color_logit.data = torch.randn(model.color_logit.shape, generator=g) * 2.0
