@@ -64,6 +64,23 @@ def _scatter_ds_grad(grad_x: wp.array(dtype=Any), t: wp.vec4i, g_ds: Any):
     wp.atomic_sub(grad_x, t[0], g1 + g2 + g3)
 
 
+@wp.func
+def _inversion_term(F: Any, Dinv: Any, t: wp.vec4i, p: Any, with_grad: int, grad_x: wp.array(dtype=Any)):
+    # max(-det F, 0)^p; when with_grad, its gradient is accumulated into grad_x.
+    d = wp.determinant(F)
+    zero = type(d)(0.0)
+    if d >= zero:
+        return zero
+    v = -d
+    if with_grad != 0:
+        # d det(F)/dF = cofactor(F): column k is the cross product of the other two columns.
+        Ft = wp.transpose(F)
+        cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
+        dE_dd = -p * wp.pow(v, p - type(p)(1.0))
+        _scatter_ds_grad(grad_x, t, (cof * dE_dd) * wp.transpose(Dinv))
+    return wp.pow(v, p)
+
+
 @wp.kernel(enable_backward=False)
 def deformation_gradient_kernel(
     x: wp.array(dtype=Any),  # [N] vec3
@@ -152,21 +169,7 @@ def inversion_penalty_kernel(
     e = wp.tid()
     t = tets[e]
     Dinv = dm_inv[e]
-    F = _ds_matrix(x, t) * Dinv
-    d = wp.determinant(F)
-    zero = type(d)(0.0)
-    if d >= zero:
-        energy[e] = zero
-        return
-    v = -d
-    energy[e] = wp.pow(v, p)
-    if with_grad == 0:
-        return
-    # d det(F)/dF = cofactor(F): column k is the cross product of the other two columns.
-    Ft = wp.transpose(F)
-    cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
-    dE_dd = -p * wp.pow(v, p - type(p)(1.0))
-    _scatter_ds_grad(grad_x, t, (cof * dE_dd) * wp.transpose(Dinv))
+    energy[e] = _inversion_term(_ds_matrix(x, t) * Dinv, Dinv, t, p, with_grad, grad_x)
 
 
 @wp.kernel(enable_backward=False)
@@ -189,19 +192,7 @@ def tet_pass_kernel(
     Dinv = dm_inv[e]
     Fe = _ds_matrix(x, t) * Dinv
     F[e] = Fe
-    d = wp.determinant(Fe)
-    zero = type(d)(0.0)
-    if d >= zero:
-        inv_energy[e] = zero
-        return
-    v = -d
-    inv_energy[e] = wp.pow(v, p)
-    if with_grad == 0:
-        return
-    Ft = wp.transpose(Fe)
-    cof = wp.matrix_from_cols(wp.cross(Ft[1], Ft[2]), wp.cross(Ft[2], Ft[0]), wp.cross(Ft[0], Ft[1]))
-    dE_dd = -p * wp.pow(v, p - type(p)(1.0))
-    _scatter_ds_grad(inv_grad_x, t, (cof * dE_dd) * wp.transpose(Dinv))
+    inv_energy[e] = _inversion_term(Fe, Dinv, t, p, with_grad, inv_grad_x)
 
 
 @wp.kernel(enable_backward=False)
