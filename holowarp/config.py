@@ -488,6 +488,10 @@ class CleanupConfig:
     Attributes:
         degenerate_rel: a tet is degenerate when |volume| < degenerate_rel * median |volume|.
         cap_dihedral_deg: boundary tets with a smaller minimum dihedral angle are dropped.
+        flap_dihedral_deg: tets with three boundary faces (flaps: their apex is in no other
+            tet) with a smaller minimum dihedral angle are dropped (10: §7b's worst-angle
+            target, which no surface-bounded operation reaches on a flap; module docstring
+            of :mod:`holowarp.stages.cleanup`).
         max_cap_rounds: passes of cap removal.
         max_repair_rounds: cap on manifold-repair rounds (each round fixes every defect found).
         min_component: which face-connected components survive, as
@@ -497,6 +501,7 @@ class CleanupConfig:
 
     degenerate_rel: float = 1e-3
     cap_dihedral_deg: float = 5.0
+    flap_dihedral_deg: float = 10.0
     max_cap_rounds: int = 5
     max_repair_rounds: int = 50
     min_component: float | None = None

@@ -8,7 +8,7 @@ import pytest
 from holowarp.primitives import box_tetmesh
 from holowarp.manifold import repair_manifold
 from holowarp.stages.cleanup import cleanup
-from holowarp.config import TetInitConfig
+from holowarp.config import CleanupConfig, TetInitConfig
 from holowarp.stages.tet_init import HullError, scaled_hull
 from holowarp.tetmesh import TetMesh
 
@@ -100,20 +100,44 @@ def test_degenerate_hulls_raise_clear_errors(points, match):
         scaled_hull(points)
 
 
-def test_cleanup_drops_flattened_boundary_caps_but_keeps_sound_tets():
+def _with_apex_on_top_face(height):
+    """The 2x2x2 box mesh plus one tet glued onto a top boundary face, its apex ``height``
+    above the face's centroid: a tet with three boundary faces (its apex is in no other tet)."""
     mesh = box_tetmesh((2, 2, 2))
     bf = mesh.boundary_faces()
     top = bf[np.all(np.isclose(mesh.vertices[bf][:, :, 2], 1.0), axis=1)][0]
-    # A cap glued onto a top boundary face: its apex sits just above the face's plane.
-    apex = mesh.vertices[top].mean(axis=0) + [0.0, 0.0, 1e-3]
+    apex = mesh.vertices[top].mean(axis=0) + [0.0, 0.0, height]
     V = np.vstack([mesh.vertices, apex])
-    cap = np.array([[top[0], top[1], top[2], mesh.num_vertices]])  # apex on the outward side: positive
-    capped = TetMesh(V, np.vstack([mesh.tets, cap]))
+    return mesh, TetMesh(V, np.vstack([mesh.tets, [[top[0], top[1], top[2], mesh.num_vertices]]]))
+
+
+def test_cleanup_drops_flattened_boundary_caps_but_keeps_sound_tets():
+    # A cap glued onto a top boundary face: its apex sits just above the face's plane.
+    mesh, capped = _with_apex_on_top_face(1e-3)
     assert capped.signed_volumes()[-1] > 0
     clean, kept, info = cleanup(capped)
     assert info["dropped_caps"] == 1 and info["dropped"] == 1
     np.testing.assert_array_equal(np.sort(kept), np.arange(mesh.num_tets))
     assert info["manifold"] and clean.num_tets == mesh.num_tets
+
+
+def test_cleanup_drops_flaps_below_the_flap_angle_and_keeps_sound_spikes():
+    # A flap of 5-10 degrees is no cap (above cap_dihedral_deg) but has three boundary faces.
+    mesh, flapped = _with_apex_on_top_face(0.015)
+    angle = flapped.quality()["min_dihedral_deg"][-1]
+    assert 5.0 < angle < 10.0 and flapped.boundary_mask()[-1].sum() == 3
+    clean, kept, info = cleanup(flapped)
+    assert info["dropped_flaps"] == 1 and info["dropped_caps"] == 1
+    np.testing.assert_array_equal(np.sort(kept), np.arange(mesh.num_tets))
+    assert info["manifold"] and clean.num_tets == mesh.num_tets
+    # The same flap stays when the flap angle is lowered below it ...
+    _, kept, info = cleanup(flapped, CleanupConfig(flap_dihedral_deg=angle - 0.5))
+    assert info["dropped_flaps"] == 0 and len(kept) == flapped.num_tets
+    # ... and a sound spike (three boundary faces, good angles) is never dropped.
+    _, spiked = _with_apex_on_top_face(0.3)
+    assert spiked.quality()["min_dihedral_deg"][-1] > 20.0
+    _, kept, info = cleanup(spiked)
+    assert info["dropped_flaps"] == 0 and len(kept) == spiked.num_tets
 
 
 def _edge_fan(sectors_deg):
