@@ -183,3 +183,24 @@ def test_cleanup_puts_back_caps_whose_removal_would_pinch_the_boundary():
     assert set(np.flatnonzero(owner != 4)) <= set(kept.tolist())
     assert info["dropped_caps"] + info["caps_restored_for_manifold"] == int((owner == 4).sum())
     assert clean.num_tets == mesh.num_tets - info["dropped_caps"]
+
+
+def test_a_flap_put_back_with_a_pinching_cap_is_dropped_on_its_own():
+    # The pinching sliver sector of the test above, plus a flap glued onto the top face of
+    # one of its tets: the flap goes with the slivers, comes back with them (it touches the
+    # pinched edge's vertex), and must then go alone.
+    sectors = [(0, 40), (40, 80), (80, 120), (120, 160), (160, 162), (162, 200), (200, 240), (240, 280), (280, 320)]
+    fan, owner = _edge_fan(sectors)
+    V, T = fan.vertices, fan.tets
+    top = next(f for f in fan.boundary_faces() if np.allclose(V[f][:, 2], 1.0)
+               and any(set(f) <= set(T[i]) for i in np.flatnonzero(owner == 4)))
+    apex = V[top].mean(axis=0) + [0.0, 0.0, 0.05]  # 8.5 degrees, thick enough not to be degenerate
+    mesh, _ = TetMesh(np.vstack([V, apex]), np.vstack([T, [[*top, len(V)]]]), validate=False).oriented()
+    assert mesh.boundary_mask()[-1].sum() == 3 and mesh.manifold()["manifold"]
+
+    clean, kept, info = cleanup(mesh)
+    assert mesh.num_tets - 1 not in kept  # the flap is gone ...
+    assert set(np.flatnonzero(owner != 4)) <= set(kept.tolist())  # ... every sound tet stays
+    assert info["dropped_flaps"] == 1 and info["manifold"] and clean.manifold()["manifold"]
+    assert clean.num_components() == 1 and clean.num_tets == mesh.num_tets - info["dropped_caps"]
+    assert info["dropped_caps"] + info["caps_restored_for_manifold"] == int((owner == 4).sum()) + 1
