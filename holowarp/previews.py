@@ -3,12 +3,14 @@
 - :func:`preview_test_views`: ground truth beside the reconstruction for a few test views,
   each panel labelled (what it is, the view, its PSNR);
 - :func:`preview_cutaway`: the tets on one side of a mid plane, coloured by face-connected
-  component (pyvista, off screen);
+  component, edges drawn;
 - :func:`preview_losses`: the loss curves of every stage (log scale) from ``history.jsonl``;
 - :func:`write_error_maps`: a prediction and its ground truth coloured by their distances
   on a fixed scale (``pred_error.ply``, ``gt_missing.ply``, ``error_views.png``).
 
 Every file is written atomically; small renders are upscaled (nearest) so pixels stay visible.
+The 3D views are drawn by holowarp's own rasteriser (:func:`_render_shaded`), not by VTK:
+VTK's off-screen renders were the peak of a run's memory (about 300 MB at its end).
 """
 
 from __future__ import annotations
@@ -119,46 +121,80 @@ def preview_silhouettes(path: Path, photos, mesh_alphas, masks, views) -> str:
     return _save(Path(path), canvas)
 
 
-def preview_turntable(path: Path, mesh: TetMesh, *, frames: int = 8, res: int = 256, device: str = "cpu") -> str:
-    """The tet mesh's boundary, shaded (a light at the camera, Lambert), from ``frames``
-    cameras on a circle around it (elevation 20 degrees, up +Z), in one row of tiles."""
+def _render_shaded(vertices, faces, face_rgb, eyes, centre, *, res: int, up=(0.0, 0.0, 1.0), edges: bool = False,
+                   device: str = "cpu") -> list[np.ndarray]:
+    """Flat-coloured, Lambert-shaded views of a triangle mesh with holowarp's own rasteriser
+    (:func:`holowarp.ops.rasterize_mesh`; no VTK, whose off-screen renders cost a run about
+    300 MB at its end).
+
+    Args:
+        vertices: (V, 3) positions; faces: (F, 3) vertex ids (either winding: the shade
+            uses |cos| to the camera).
+        face_rgb: (F, 3) colours in [0, 1].
+        eyes: camera positions (K, 3), each looking at ``centre`` (3,) with ``up``.
+        res: square image size in pixels.
+        edges: darken the pixels where the visible face changes (the triangles' edges).
+
+    Returns:
+        K images (res, res, 3) in [0, 1] on a white background.
+    """
     import torch
 
     from holowarp.camera import FOV_DEG, intrinsics_from_fov, look_at
     from holowarp.ops import rasterize_mesh
 
-    V = np.asarray(mesh.vertices, dtype=np.float64)
-    lo, hi = V.min(axis=0), V.max(axis=0)
-    centre, radius = 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
-    dist = 1.1 * radius / np.sin(np.radians(FOV_DEG) / 2)
     K = intrinsics_from_fov(np.radians(FOV_DEG), res, res)
-    x = torch.tensor(V, dtype=torch.float32, device=device)
-    faces = torch.tensor(np.asarray(mesh.boundary_faces()), dtype=torch.int32, device=device)
-    tiles = []
-    for k in range(frames):
-        az, el = 2 * np.pi * k / frames, np.radians(20.0)
-        eye = centre + dist * np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
-        vm = look_at(eye, centre)
+    x = torch.tensor(np.asarray(vertices, dtype=np.float64), dtype=torch.float32, device=device)
+    f = torch.tensor(np.asarray(faces, dtype=np.int64), dtype=torch.int32, device=device)
+    rgb_f = np.asarray(face_rgb, dtype=np.float64).reshape(-1, 3)
+    out = []
+    for eye in np.asarray(eyes, dtype=np.float64).reshape(-1, 3):
+        vm = look_at(eye, centre, up)
         with torch.no_grad():
-            r = rasterize_mesh(x, faces, vm, K, res, res)
+            r = rasterize_mesh(x, f, vm, K, res, res)
+        fid = r["face_id"].cpu().numpy()
         n = r["normal"].cpu().numpy()
         a = r["alpha"].cpu().numpy()
         to_cam = -vm[2, :3]  # world direction from the surface back to the camera
-        shade = np.clip((n @ to_cam) / np.maximum(np.linalg.norm(n, axis=-1), 1e-12), 0.0, 1.0)
-        rgb = (0.15 + 0.8 * shade)[..., None] * np.array([0.85, 0.8, 0.7])
-        tiles.append(a[..., None] * rgb + (1 - a[..., None]) * 1.0)
+        shade = np.abs(n @ to_cam) / np.maximum(np.linalg.norm(n, axis=-1), 1e-12)
+        rgb = (0.25 + 0.75 * shade)[..., None] * rgb_f[np.maximum(fid, 0)]
+        if edges:
+            line = np.zeros(fid.shape, dtype=bool)
+            line[:, 1:] |= fid[:, 1:] != fid[:, :-1]
+            line[1:, :] |= fid[1:, :] != fid[:-1, :]
+            rgb = np.where(line[..., None], 0.15 * rgb, rgb)
+        out.append(a[..., None] * rgb + (1 - a[..., None]) * 1.0)
+    return out
+
+
+def _framing(vertices) -> tuple[np.ndarray, float]:
+    """Centre (3,) and the camera distance at which a bounding sphere fills the view."""
+    from holowarp.camera import FOV_DEG
+
+    V = np.asarray(vertices, dtype=np.float64)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    return 0.5 * (lo + hi), 1.1 * 0.5 * float(np.linalg.norm(hi - lo)) / np.sin(np.radians(FOV_DEG) / 2)
+
+
+def preview_turntable(path: Path, mesh: TetMesh, *, frames: int = 8, res: int = 256, device: str = "cpu") -> str:
+    """The tet mesh's boundary, shaded (a light at the camera, Lambert), from ``frames``
+    cameras on a circle around it (elevation 20 degrees, up +Z), in one row of tiles."""
+    centre, dist = _framing(mesh.vertices)
+    az, el = 2 * np.pi * np.arange(frames) / frames, np.radians(20.0)
+    eyes = centre + dist * np.stack([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.full(frames, np.sin(el))], 1)
+    faces = np.asarray(mesh.boundary_faces())
+    tiles = _render_shaded(mesh.vertices, faces, np.tile([0.85, 0.8, 0.7], (len(faces), 1)), eyes, centre, res=res,
+                           device=device)
     im = _to_image(np.concatenate(tiles, axis=1), min_height=res)
     labelled_im = labelled(np.asarray(im, dtype=np.float32) / 255.0,
                            f"{mesh.num_tets} tets, {len(mesh.boundary_faces())} boundary faces; turntable", min_height=res)
     return _save(Path(path), labelled_im)
 
 
-def preview_cutaway(path: Path, mesh: TetMesh, *, axis: int = 1) -> str:
-    """Off-screen pyvista render of the tets on one side of a mid plane, coloured by
-    face-connected component (one colour per component), edges shown."""
-    import pyvista as pv
-
-    from holowarp.viz import offscreen_plotter
+def preview_cutaway(path: Path, mesh: TetMesh, *, axis: int = 1, res: int = 800, device: str = "cpu") -> str:
+    """The tets on one side of a mid plane, coloured by face-connected component (one colour
+    per component, tab10), their edges drawn, seen from the cut's side."""
+    from matplotlib import colormaps
 
     labels, n = mesh.components()
     c = mesh.vertices[mesh.tets].mean(axis=1)
@@ -166,37 +202,19 @@ def preview_cutaway(path: Path, mesh: TetMesh, *, axis: int = 1) -> str:
     sel = c[:, axis] <= mid
     if not sel.any():
         sel[:] = True
-    cells = np.hstack([np.full((int(sel.sum()), 1), 4), mesh.tets[sel]]).astype(np.int64).ravel()
-    grid = pv.UnstructuredGrid(cells, np.full(int(sel.sum()), pv.CellType.TETRA, dtype=np.uint8), mesh.vertices)
-    grid.cell_data["component"] = labels[sel]
-    plotter = offscreen_plotter((800, 800))
-    plotter.add_mesh(
-        grid,
-        scalars="component",
-        show_edges=True,
-        edge_color="black",
-        line_width=0.5,
-        cmap="tab10",
-        clim=(0, max(n - 1, 1)),
-        show_scalar_bar=False,
-    )
-    plotter.add_text(f"{mesh.num_tets} tets, {n} component(s); cut at mid-plane", font_size=10)
-    centre = mesh.vertices.mean(axis=0)
-    extent = float(np.ptp(mesh.vertices, axis=0).max())
+    half = TetMesh(mesh.vertices, mesh.tets[sel], validate=False)
+    faces = half.boundary_faces()
+    rgb = colormaps["tab10"](labels[sel][half.boundary_face_tets()] % 10)[:, :3]
+    centre, dist = _framing(mesh.vertices)
     # Look at the cut face: the kept half lies on the low side of the plane, so the camera
     # sits on the high side, a little above and to the side.
     side = np.roll(np.eye(3)[axis], 1)
     up = np.array([0.0, 0.0, 1.0]) if axis != 2 else np.array([0.0, 1.0, 0.0])
-    eye = centre + extent * 2.0 * (np.eye(3)[axis] + 0.35 * side + 0.35 * up)
-    plotter.camera_position = [tuple(eye), tuple(centre), tuple(up)]
-    plotter.reset_camera()
-    plotter.camera.zoom(1.3)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        plotter.screenshot(str(tmp))
-    plotter.close()
-    return str(path)
+    view = np.eye(3)[axis] + 0.35 * side + 0.35 * up
+    eye = centre + 0.8 * dist * view / np.linalg.norm(view)
+    (img,) = _render_shaded(mesh.vertices, faces, rgb, [eye], centre, res=res, up=up, edges=True, device=device)
+    im = labelled(img, f"{mesh.num_tets} tets, {n} component(s); cut at mid-plane", min_height=res)
+    return _save(Path(path), im)
 
 
 def preview_losses(path: Path, history: dict) -> str:
@@ -272,33 +290,42 @@ def write_error_maps(out_dir, pred, gt, *, device: str = "cpu", title: str = "")
         "gt_missing": str(write_surface(out / "gt_missing.ply", (gV, gF), colors=error_colors(d_gt),
                                         header=f"GT coloured by distance to the prediction, {ERROR_CMAP} 0..{ERROR_SCALE}")),
     }
-    paths["error_views"] = _error_views(out / "error_views.png", (pV, pF, d_pred), (gV, gF, d_gt), title)
+    paths["error_views"] = _error_views(out / "error_views.png", (pV, pF, d_pred), (gV, gF, d_gt), title,
+                                        device=device)
     stats = {name: {"mean": float(d.mean()), "p95": float(np.percentile(d, 95)), "max": float(d.max())}
              for name, d in (("pred_to_gt", d_pred), ("gt_to_pred", d_gt))}
     return {"paths": paths, "distances": stats, "scale": [0.0, ERROR_SCALE], "colormap": ERROR_CMAP}
 
 
-def _error_views(path: Path, pred, gt, title: str) -> str:
-    """Two rows (prediction error, GT missing) by four views, off screen."""
-    import pyvista as pv
+def _colour_bar(height: int, width: int = 90) -> np.ndarray:
+    """(height, width, 3) legend of :func:`error_colors`: the colour scale from 0 (bottom) to
+    :data:`ERROR_SCALE`, below the label band that :func:`labelled` draws over the top."""
+    from PIL import Image, ImageDraw
 
-    from holowarp.viz import offscreen_plotter
+    top, bottom = height // 8, height - 8
+    bar = np.ones((height, width, 3))
+    bar[top:bottom, 8:30] = error_colors(np.linspace(ERROR_SCALE, 0.0, bottom - top)).astype(np.float64)[:, None] / 255.0
+    im = Image.fromarray((bar * 255).astype(np.uint8))
+    draw = ImageDraw.Draw(im)
+    for k in range(3):
+        draw.text((34, top + k * (bottom - top - 10) // 2), f"{ERROR_SCALE * (1 - k / 2):.3f}", fill=(0, 0, 0))
+    return np.asarray(im, dtype=np.float64) / 255.0
 
-    pl = offscreen_plotter((1600, 820), shape=(2, 4), border=False)
-    views = [(1, -1, 0.6), (-1, -1, 0.6), (-1, 1, -0.4), (1, 1, 0.9)]
-    for row, ((V, F, d), label) in enumerate(((pred, "prediction: distance to GT"), (gt, "GT: distance to prediction"))):
-        poly = pv.PolyData(np.asarray(V, np.float64), np.hstack([np.full((len(F), 1), 3), F]).ravel())
-        poly.point_data["distance"] = np.asarray(d, np.float64)
-        for col, eye in enumerate(views):
-            pl.subplot(row, col)
-            pl.add_mesh(poly.copy(), scalars="distance", cmap=ERROR_CMAP, clim=(0.0, ERROR_SCALE), smooth_shading=True,
-                        show_scalar_bar=(col == 3), scalar_bar_args={"title": "distance", "fmt": "%.3f", "n_labels": 3})
-            if col == 0:
-                pl.add_text(label + (f" ({title})" if title else ""), font_size=9)
-            c = 0.5 * (np.asarray(V).min(0) + np.asarray(V).max(0))
-            pl.camera_position = [tuple(c + 2.2 * np.array(eye) / np.linalg.norm(eye)), tuple(c), (0, 0, 1)]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        pl.screenshot(str(tmp))
-    pl.close()
-    return str(path)
+
+def _error_views(path: Path, pred, gt, title: str, *, res: int = 400, device: str = "cpu") -> str:
+    """Two rows (prediction error, GT missing) by four views, each face coloured by the mean
+    distance of its corners on the fixed scale, and the colour bar."""
+    views = np.array([(1, -1, 0.6), (-1, -1, 0.6), (-1, 1, -0.4), (1, 1, 0.9)], dtype=np.float64)
+    views /= np.linalg.norm(views, axis=1, keepdims=True)
+    rows = []
+    for (V, F, d), label in ((pred, "prediction: distance to GT"), (gt, "GT: distance to prediction")):
+        V, F = np.asarray(V, np.float64), np.asarray(F, np.int64)
+        centre, dist = _framing(V)
+        rgb = error_colors(np.asarray(d, np.float64)[F].mean(axis=1)).astype(np.float64) / 255.0
+        tiles = _render_shaded(V, F, rgb, centre + dist * views, centre, res=res, device=device)
+        row = np.concatenate(tiles + [_colour_bar(res)], axis=1)
+        text = label + (f" ({title})" if title else "") + f"; {ERROR_CMAP}, 0 to {ERROR_SCALE}"
+        rows.append(np.asarray(labelled(row, text, min_height=res), dtype=np.float64) / 255.0)
+    from PIL import Image
+
+    return _save(path, Image.fromarray((np.concatenate(rows, axis=0) * 255 + 0.5).astype(np.uint8)))

@@ -229,7 +229,7 @@ def _view_results(model, mesh, dataset, prev, history, device) -> dict:
         "silhouettes": preview_silhouettes(prev / "silhouettes.png", [dataset.images[test[i]] for i in pick],
                                            [meshes[i]["alpha"] for i in pick], dataset.masks[test[pick]], test[pick]),
         "turntable": preview_turntable(prev / "turntable.png", mesh, device=str(device)),
-        "cutaway": preview_cutaway(prev / "cutaway_components.png", mesh),
+        "cutaway": preview_cutaway(prev / "cutaway_components.png", mesh, device=str(device)),
         "losses": preview_losses(prev / "losses.png", history),
     }
     return {"psnr": psnr, "ssim": ssim, "previews": previews,
