@@ -637,6 +637,9 @@ class ImproveConfig:
             vertices, edge midpoints and centroids) for the measured Hausdorff distance.
         hausdorff_margin: factor on every sampled local surface move before it is charged
             to the budget (a sampled maximum is slightly below the true one).
+        remeasure_budget: before each round that may move the surface, measure how far
+            each boundary vertex's triangles are from the input surface instead of keeping
+            the sum of the moves' bounds (:func:`holowarp.stages.improve._remeasure_budget`).
         refit_steps: Gaussian-only steps after the improvement (colours, rotations,
             opacities and scales on training views; vertices and tets fixed). A flipped or
             split tet's surfel moves to the new centroid with its parent's colour and
@@ -673,6 +676,7 @@ class ImproveConfig:
     eta_histogram_edges: tuple = field(default=ETA_HISTOGRAM_EDGES)
     hausdorff_samples_per_face: int = 8
     hausdorff_margin: float = 1.2
+    remeasure_budget: bool = True
     refit_steps: int = 2500
 
     def __post_init__(self):

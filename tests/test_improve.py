@@ -476,3 +476,28 @@ def test_cli_help_states_formats_and_the_bound(capsys):
     text = build_parser().format_help()
     for word in (".vtu", ".msh", ".npz", ".usda", "FRAC", ">= 0", "0.1", "--device", "--quiet", "--json"):
         assert word in text
+
+
+def test_remeasured_budget_is_the_distance_to_the_input_surface():
+    from holowarp.config import ImproveConfig
+    from holowarp.stages.improve import _PATCH_GRID, _Work, _remeasure_budget
+
+    mesh = box_tetmesh((2, 2, 2))
+    V = mesh.vertices
+    top = int(np.flatnonzero(np.all(np.isclose(V, [0.5, 0.5, 1.0]), axis=1))[0])  # centre of the top face
+    va, fa = mesh.surface_mesh()
+    va, fa = np.asarray(va, np.float64), np.asarray(fa, np.int64)
+    ref = (va, fa, np.einsum("kj,fjd->fkd", _PATCH_GRID, va[fa]).reshape(-1, 3))
+    w = _Work(mesh, ImproveConfig(), "cpu")
+    w.err[:] = 1.0  # an accumulated bound far above the truth
+    _remeasure_budget(w, ref)
+    np.testing.assert_allclose(w.err, 0.0, atol=1e-12)  # nothing has moved
+    moved = w.V.copy()
+    moved[top, 2] += 0.01  # lift the vertex off the plane: its umbrella leaves the input by 0.01
+    w.V = moved
+    w.changed()
+    _remeasure_budget(w, ref)
+    umbrella = np.unique(mesh.boundary_faces()[(mesh.boundary_faces() == top).any(axis=1)])
+    np.testing.assert_allclose(w.err[umbrella], ImproveConfig().hausdorff_margin * 0.01, rtol=1e-9)
+    others = np.setdiff1d(np.unique(mesh.boundary_faces()), umbrella)
+    assert np.all(w.err[others] < 1e-12) and np.all(w.err[~np.isin(np.arange(len(V)), mesh.boundary_faces())] == 0.0)
