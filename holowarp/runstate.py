@@ -13,7 +13,7 @@ Layout in the run folder:
   twice.
 
 A resumed run must use the same settings and the same dataset: :func:`check_resume` names
-what differs.
+what differs. Only the settings that the finish alone reads (:data:`FINISH_ONLY`) may change.
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ __all__ = [
     "Checkpoint",
     "CheckpointError",
     "HistoryLog",
+    "FINISH_ONLY",
     "check_resume",
     "settings_diff",
 ]
@@ -183,9 +184,16 @@ def settings_diff(current: dict, saved: dict) -> list[str]:
     return sorted(diff)
 
 
+#: Settings sections that only the finish reads (cleanup, the element improvement and its
+#: surfel refit). A resumed run always redoes the finish from the checkpointed model, so these
+#: may differ on ``--resume``: that is how a finished run is finished again with other
+#: cleanup or improvement settings (``--resume --no-improve``, say).
+FINISH_ONLY = ("cleanup", "improve")
+
+
 def check_resume(out_dir, ckpt: Checkpoint | None, config_dict: dict, dataset_path, *, resume: bool) -> None:
     """Refuse to overwrite a run without ``resume``, and to resume one with other settings
-    or another dataset."""
+    (except the :data:`FINISH_ONLY` ones) or another dataset."""
     if ckpt is None:
         return
     if not resume:
@@ -193,7 +201,7 @@ def check_resume(out_dir, ckpt: Checkpoint | None, config_dict: dict, dataset_pa
             f"{out_dir} already holds a reconstruction (checkpoints/state.pt); pass --resume to continue it "
             "or choose another --out"
         )
-    diff = settings_diff(config_dict, ckpt.config)
+    diff = [d for d in settings_diff(config_dict, ckpt.config) if d.split(".")[0] not in FINISH_ONLY]
     if diff:
         raise CheckpointError(f"{out_dir}: --resume with different settings than the checkpoint ({', '.join(diff[:8])})")
     if ckpt.dataset_path != (str(dataset_path) if dataset_path else None):

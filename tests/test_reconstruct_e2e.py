@@ -181,6 +181,13 @@ def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkey
                     resume=True, progress=False)
     assert (b / "report.json").read_bytes() == before
 
+    # Settings that only the finish reads may change: the run is finished again from its
+    # checkpoint, here without the element improvement, so its mesh is cleanup's.
+    rc = reconstruct(torus_dataset, b, config=replace(cfg, improve=replace(cfg.improve, enabled=False)),
+                     resume=True, progress=False)
+    assert rc["improve"] is None and rc["tets_final"] == rb["cleanup"]["tets_after"]
+    assert rc["prunes"] == rb["prunes"] and rc["genus"] == rb["genus"]
+
 
 def test_bad_requests_fail_before_any_work(torus_dataset, tmp_path, capsys):
     import torch
