@@ -78,7 +78,7 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
     t = mesh.tets.copy()
     t[flip, 2], t[flip, 3] = mesh.tets[flip, 3], mesh.tets[flip, 2]
     info["flipped"] = int(flip.sum())
-    keep, capped, flaps = _drop_caps_and_flaps(mesh.vertices, t, ~degenerate, degenerate, config)
+    keep, capped, flaps = _drop_caps_and_flaps(mesh.vertices, t, ~degenerate, config)
     caps = int(np.count_nonzero(capped & ~keep))
     restored = int(np.count_nonzero(capped & keep))
     info["dropped"] = int(degenerate.sum()) + caps
@@ -109,25 +109,30 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
     return out, kept.astype(np.int64), info
 
 
-def _drop_caps_and_flaps(vertices, t, keep, degenerate, config: CleanupConfig):
+def _flaps(work: TetMesh, angle: np.ndarray, config: CleanupConfig) -> np.ndarray:
+    """(M,) bool: the tets of ``work`` with three boundary faces and a minimum dihedral angle
+    ``angle`` (M,) below ``flap_dihedral_deg``."""
+    return (work.boundary_mask().sum(axis=1) >= 3) & (angle < config.flap_dihedral_deg)
+
+
+def _drop_caps_and_flaps(vertices, t, keep, config: CleanupConfig):
     """Steps 2-3 of the module docstring for the tets ``t`` (M, 4) still in ``keep`` (M,):
     drop caps and flaps (repeatedly), put back the caps around pinches, then drop the
     flaps left on their own. Returns (keep, capped: every tet dropped as a cap or flap at
     some point, flaps: those dropped as flaps), each (M,) bool."""
-    keep = keep.copy()
+    start, keep = keep, keep.copy()
     flaps = np.zeros(len(t), dtype=bool)
     for _ in range(config.max_cap_rounds):
         ids = np.flatnonzero(keep)
         work = TetMesh(vertices, t[ids], validate=False)
-        n_boundary = work.boundary_mask().sum(axis=1)
         angle = work.quality()["min_dihedral_deg"]
-        flap = (n_boundary >= 3) & (angle < config.flap_dihedral_deg)
-        cap = ((n_boundary > 0) & (angle < config.cap_dihedral_deg)) | flap
+        flap = _flaps(work, angle, config)
+        cap = (work.boundary_mask().any(axis=1) & (angle < config.cap_dihedral_deg)) | flap
         if not cap.any() or cap.all():
             break
         keep[ids[cap]] = False
         flaps[ids[flap]] = True
-    capped = ~keep & ~degenerate
+    capped = start & ~keep
     keep, _ = restore_until_manifold(vertices, t, keep, capped)
     # A flap dropped next to a cap whose removal pinched came back with it. On its own a
     # flap never pinches (its apex goes with it, and its inner face takes the place of its
@@ -135,8 +140,7 @@ def _drop_caps_and_flaps(vertices, t, keep, degenerate, config: CleanupConfig):
     for _ in range(config.max_cap_rounds):
         ids = np.flatnonzero(keep)
         work = TetMesh(vertices, t[ids], validate=False)
-        flap = ((work.boundary_mask().sum(axis=1) >= 3)
-                & (work.quality()["min_dihedral_deg"] < config.flap_dihedral_deg))
+        flap = _flaps(work, work.quality()["min_dihedral_deg"], config)
         if not flap.any() or flap.all():
             break
         drop = np.zeros(len(t), dtype=bool)
