@@ -190,8 +190,8 @@ class TetGaussians:
     def apply_cleanup(self, kept, mesh: TetMesh) -> None:
         """Follow a cleanup (method.md §7) that kept input tets ``kept`` (K,) and produced
         ``mesh`` (its tets in that order, possibly with two vertices swapped, unused vertices
-        removed in increasing id order). Surfels follow their tets; a swap keeps a tet's
-        centroid, so nothing moves.
+        removed in increasing id order, knife ridges blunted). Surfels follow their tets; a
+        swap keeps a tet's centroid, and the vertices take ``mesh``'s positions.
 
         Raises:
             ValueError: ``mesh`` is not a cleanup of this model's mesh (other vertex set).
@@ -203,6 +203,9 @@ class TetGaussians:
                 f"model after keeping its tets ({self.num_tets} tets, {self.num_vertices} vertices)"
             )
         self.tets = torch.tensor(np.array(mesh.tets), dtype=torch.int64, device=self.device)
+        with torch.no_grad():
+            x = torch.tensor(np.array(mesh.vertices), dtype=self.vertices.dtype, device=self.device)
+            self.vertices = torch.nn.Parameter(x)
 
     def apply_improve(self, mesh: TetMesh, parent) -> None:
         """Follow the element improvement (method.md §7b) that turned this model's mesh into

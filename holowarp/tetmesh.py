@@ -439,6 +439,20 @@ class TetMesh:
         return int(round((2 * shells - self.euler_characteristic()) / 2))
 
     # ------------------------------------------------------------------ quality
+    def dihedral_angles(self) -> np.ndarray:
+        """Interior dihedral angles (M, 6) float64 in degrees, column k at local edge
+        ``TET_EDGES[k]``; nan for a degenerate tet (a face of zero area)."""
+        a, b, c, d = self._corners()
+        f = np.stack([a, b, c, d], axis=1)[:, TET_FACES]  # [M, 4, 3, 3]
+        # Area vectors of local faces (outward for positive tets); magnitude = 2 * area.
+        n = np.cross(f[:, :, 1] - f[:, :, 0], f[:, :, 2] - f[:, :, 0])
+        nn = np.linalg.norm(n, axis=2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cosang = -np.einsum("mek,mek->me", n[:, _EDGE_OPPOSITE[:, 0]], n[:, _EDGE_OPPOSITE[:, 1]]) / (
+                nn[:, _EDGE_OPPOSITE[:, 0]] * nn[:, _EDGE_OPPOSITE[:, 1]]
+            )
+        return np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+
     def quality(self) -> dict:
         """Per-tet quality measures (method.md §9).
 
@@ -456,13 +470,8 @@ class TetMesh:
         n = np.cross(f[:, :, 1] - f[:, :, 0], f[:, :, 2] - f[:, :, 0])  # [M, 4, 3]
         nn = np.linalg.norm(n, axis=2)  # [M, 4]
         vol = np.abs(self._signed_volumes)
+        dihedral = self.dihedral_angles()  # [M, 6]
         with np.errstate(divide="ignore", invalid="ignore"):
-            n1 = n[:, _EDGE_OPPOSITE[:, 0]]
-            n2 = n[:, _EDGE_OPPOSITE[:, 1]]
-            cosang = -np.einsum("mek,mek->me", n1, n2) / (
-                nn[:, _EDGE_OPPOSITE[:, 0]] * nn[:, _EDGE_OPPOSITE[:, 1]]
-            )
-            dihedral = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))  # [M, 6]
             min_dih = np.nan_to_num(dihedral.min(axis=1), nan=0.0)
             area_sum = 0.5 * nn.sum(axis=1)
             inradius = 3.0 * vol / area_sum

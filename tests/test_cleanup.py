@@ -204,3 +204,66 @@ def test_a_flap_put_back_with_a_pinching_cap_is_dropped_on_its_own():
     assert info["dropped_flaps"] == 1 and info["manifold"] and clean.manifold()["manifold"]
     assert clean.num_components() == 1 and clean.num_tets == mesh.num_tets - info["dropped_caps"]
     assert info["dropped_caps"] + info["caps_restored_for_manifold"] == int((owner == 4).sum()) + 1
+
+
+def _prism(apex_deg: float, segments: int = 6, rng=None):
+    """A triangular prism along z whose cross-section has an apex of ``apex_deg`` at the
+    origin (a knife ridge along z) and 80°-ish corners elsewhere; each of ``segments``
+    slabs is three tets (the staircase split of a prism). Vertices jittered by ``rng``."""
+    h = np.tan(np.radians(apex_deg / 2))
+    tri = np.array([[0.0, 0.0], [1.0, -h], [1.0, h]])
+    z = np.linspace(0.0, 1.5, segments + 1)
+    V = np.array([[x, y, zz] for zz in z for (x, y) in tri])
+    if rng is not None:
+        V += rng.uniform(-0.01, 0.01, V.shape)
+    T = []
+    for s in range(segments):
+        a, b, c = 3 * s, 3 * s + 1, 3 * s + 2
+        d, e, f = a + 3, b + 3, c + 3
+        T += [[a, b, c, d], [b, c, d, e], [c, d, e, f]]
+    mesh, _ = TetMesh(V, np.array(T)).oriented()
+    return mesh
+
+
+def test_blunting_opens_knife_ridges_within_its_move_bound(rng):
+    from holowarp.stages.cleanup import blunt_ridges, ridge_wedges
+
+    mesh = _prism(20.0, rng=rng)
+    edges, wedge = ridge_wedges(mesh)
+    apex = np.arange(0, mesh.num_vertices, 3)
+    ridge = np.isin(edges, apex).all(axis=1)
+    # The oracle: the wedge along the ridge is the cross-section's apex angle.
+    assert np.allclose(wedge[ridge], 20.0, atol=2.5)
+    assert wedge[~ridge].min() > 30.0
+    cfg = CleanupConfig()
+    out, info = blunt_ridges(mesh, cfg)
+    assert info["sharp_edges_before"] == ridge.sum() and info["sharp_edges_after"] < info["sharp_edges_before"]
+    L = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1).mean()
+    move = np.linalg.norm(out.vertices - mesh.vertices, axis=1)
+    assert move.max() <= cfg.blunt_max_move * L * (1 + 1e-9)
+    assert np.isclose(info["max_move_mean_edges"], move.max() / L)
+    # Only the ridge's vertices move, and they move into the body (towards the base, +x).
+    assert np.all(move[np.setdiff1d(np.arange(mesh.num_vertices), apex)] == 0)
+    assert np.all(out.vertices[apex, 0] > mesh.vertices[apex, 0])
+    assert np.all(out.signed_volumes() > 0)
+    assert ridge_wedges(out)[1][ridge].min() > wedge[ridge].max()
+    # A box has 90° ridges: nothing moves, and 0 turns the step off.
+    box = box_tetmesh((2, 2, 2))
+    same, info = blunt_ridges(box, cfg)
+    assert info["sharp_edges_before"] == 0 and np.array_equal(same.vertices, box.vertices)
+    off, info = blunt_ridges(mesh, CleanupConfig(blunt_wedge_deg=0.0))
+    assert info["vertices_moved"] == 0 and np.array_equal(off.vertices, mesh.vertices)
+    with pytest.raises(ValueError, match="blunt_step"):
+        CleanupConfig(blunt_step=0.0)
+
+
+def test_blunting_moves_no_vertex_of_a_tet_it_would_leave_below_min_volume():
+    from holowarp.stages.cleanup import blunt_ridges
+
+    mesh = _prism(20.0)
+    # Demand more volume of every tet than any has: no move is allowed, none happens.
+    big = 10 * np.abs(mesh.signed_volumes()).max()
+    out, info = blunt_ridges(mesh, CleanupConfig(), min_volume=-big)
+    assert info["vertices_moved"] > 0
+    still, info = blunt_ridges(mesh, CleanupConfig(), min_volume=big)
+    assert info["vertices_moved"] == 0 and info["rounds"] == 0 and np.array_equal(still.vertices, mesh.vertices)
