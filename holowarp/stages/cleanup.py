@@ -178,14 +178,16 @@ def blunt_ridges(mesh: TetMesh, config: CleanupConfig, min_volume: float = 0.0) 
         step = config.blunt_step * (centroid / count[verts, None] - V[verts])
         length = np.linalg.norm(step, axis=1)
         step *= np.minimum(1.0, allowance[verts] / np.maximum(length, 1e-300))[:, None]
-        while True:  # drop the moves that would flatten or invert a tet, until none does
+        tries = np.zeros(len(verts), dtype=np.int64)
+        while True:  # halve (three times, then drop) the moves that would flatten or invert a tet
             Vn = V.copy()
             Vn[verts] += step
             bad = TetMesh(Vn, T, validate=False).signed_volumes() <= min_volume
             stop = np.isin(verts, T[bad]) & np.any(step != 0, axis=1)
             if not stop.any():
                 break
-            step[stop] = 0.0
+            tries[stop] += 1
+            step[stop] *= np.where(tries[stop] > 3, 0.0, 0.5)[:, None]
         moved = np.linalg.norm(step, axis=1)
         if not np.any(moved > 0):
             break
