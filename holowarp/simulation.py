@@ -68,12 +68,20 @@ def check_work(scene, meshes, *, allow_long: bool = False) -> float:
     return work
 
 
+#: A surface given as a simulation mesh (a ground-truth reference) is decimated to this many
+#: triangles before fTetWild when it has more. Its tets come out at fTetWild's default edge
+#: length (5% of the diagonal), about the reconstructions' resolution; finer input triangles
+#: only cost time (:func:`holowarp.tetmesh.tetrahedralize_surface`).
+SURFACE_MAX_FACES = 10_000
+
+
 def load_sim_mesh(src, *, what: str = "mesh") -> TetMesh:
     """A positively oriented tet mesh without unused vertices from ``src``.
 
     Args:
         src: a :class:`TetMesh`, a tet-mesh file (``.vtu``, ``.msh``, ``.npz``, ``.usd*``), or
-            a closed surface (``.obj``, ``.ply``, ...), which is tetrahedralised with fTetWild.
+            a closed surface (``.obj``, ``.ply``, ...), which is tetrahedralised with fTetWild
+            (decimated first to ``SURFACE_MAX_FACES`` triangles when it has more).
         what: name used in error messages.
     """
     from holowarp.mesh_io import TET_FORMATS, MeshIOError, read_tetmesh
@@ -95,7 +103,7 @@ def load_sim_mesh(src, *, what: str = "mesh") -> TetMesh:
                     V, F, _ = load_surface(path)
                 except EvaluationError as e:
                     raise SimulationError(f"{what} {e}") from None
-                mesh = tetrahedralize_surface(V, F)
+                mesh = tetrahedralize_surface(V, F, max_faces=SURFACE_MAX_FACES)
         except MeshIOError as e:
             raise SimulationError(f"{what} {e}") from None
     else:

@@ -39,6 +39,7 @@ __all__ = [
     "TetMesh",
     "TetMeshError",
     "tetrahedralize_surface",
+    "decimate_surface",
 ]
 
 #: Outward-wound local faces of a positively oriented tet; row k is the face opposite vertex k.
@@ -536,6 +537,23 @@ class TetMesh:
         return out
 
 
+def decimate_surface(vertices, faces, max_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """A triangle surface (V, 3), (F, 3) decimated to about ``max_faces`` triangles by
+    quadric error (VTK's vtkQuadricDecimation through pyvista), as (V', 3) float64 and
+    (F', 3) int32. A surface with at most ``max_faces`` triangles comes back unchanged."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    if max_faces < 4:
+        raise TetMeshError(f"decimate_surface: max_faces must be at least 4, got {max_faces}")
+    if len(f) <= max_faces:
+        return v, f.astype(np.int32)
+    import pyvista as pv
+
+    poly = pv.PolyData(v, np.hstack([np.full((len(f), 1), 3), f]).ravel())
+    out = poly.decimate(1.0 - max_faces / len(f))
+    return np.asarray(out.points, dtype=np.float64), np.asarray(out.faces).reshape(-1, 4)[:, 1:].astype(np.int32)
+
+
 def tetrahedralize_surface(
     vertices,
     faces,
@@ -545,6 +563,7 @@ def tetrahedralize_surface(
     epsilon: float = 1e-3,
     optimize: bool = True,
     num_threads: int = 0,
+    max_faces: int | None = None,
 ) -> TetMesh:
     """Tetrahedralise a closed triangle surface with fTetWild (pytetwild).
 
@@ -556,6 +575,11 @@ def tetrahedralize_surface(
         edge_length_abs: absolute ideal edge length; overrides ``edge_length_fac``.
         epsilon: envelope size relative to the bbox (method.md §4: 1e-3).
         optimize: let fTetWild improve element quality.
+        max_faces: a surface with more triangles is first decimated to about this many
+            (quadric error, VTK through pyvista). fTetWild's time grows with the input's
+            triangles, not with the output's tets: a 60k-triangle mug takes it minutes at
+            ``edge_length_fac`` 0.05, the same mug decimated to 10k well under two (and
+            the same Chamfer-L1 to the original surface, at the 100k-sample floor).
 
     Returns:
         A positively oriented :class:`TetMesh` (fTetWild output is re-oriented and unused
@@ -570,6 +594,8 @@ def tetrahedralize_surface(
     f = np.ascontiguousarray(faces, dtype=np.int32)
     if len(v) < 4 or len(f) < 4:
         raise TetMeshError(f"tetrahedralize_surface: need a closed surface, got {len(v)} vertices, {len(f)} faces")
+    if max_faces is not None and len(f) > max_faces:
+        v, f = decimate_surface(v, f, max_faces)
     # fTetWild drops a debug file (__tracked_surface.stl) into the working folder; run it in
     # a scratch folder so users' folders stay clean.
     import contextlib

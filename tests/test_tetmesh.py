@@ -264,3 +264,29 @@ def test_remove_unused_vertices_and_submesh_keep_geometry(rng):
 def test_invalid_meshes_raise_clear_errors(vertices, tets, match):
     with pytest.raises(TetMeshError, match=match):
         TetMesh(vertices, tets)
+
+
+def test_decimated_surface_stays_on_the_sphere_and_closed(rng):
+    import trimesh
+
+    from holowarp.tetmesh import TetMeshError, decimate_surface, tetrahedralize_surface
+
+    s = trimesh.creation.icosphere(subdivisions=5, radius=1.0)  # 20480 triangles
+    R = trimesh.transformations.random_rotation_matrix(rng.random(3))[:3, :3]
+    V0 = s.vertices @ R.T
+    V, F = decimate_surface(V0, s.faces, 2000)
+    assert 1500 <= len(F) <= 2100 and F.dtype == np.int32
+    # The oracle: every vertex of the decimated sphere is still on the unit sphere (quadric
+    # decimation keeps vertices near the original surface), and the surface stays closed.
+    r = np.linalg.norm(V, axis=1)
+    assert np.abs(r - 1.0).max() < 0.02
+    assert trimesh.Trimesh(V, F, process=True).is_watertight
+    # At or below the limit nothing changes.
+    V2, F2 = decimate_surface(V0, s.faces, len(s.faces))
+    assert np.array_equal(V2, V0) and np.array_equal(F2, s.faces)
+    with pytest.raises(TetMeshError, match="max_faces"):
+        decimate_surface(V0, s.faces, 3)
+    mesh = tetrahedralize_surface(V0, s.faces, edge_length_fac=0.15, max_faces=2000)
+    assert mesh.num_components() == 1 and mesh.manifold()["manifold"]
+    assert np.all(mesh.signed_volumes() > 0)
+    assert abs(mesh.volume() - 4.0 / 3.0 * np.pi) < 0.05 * 4.0 / 3.0 * np.pi
