@@ -539,8 +539,8 @@ class TetMesh:
 
 def decimate_surface(vertices, faces, max_faces: int) -> tuple[np.ndarray, np.ndarray]:
     """A triangle surface (V, 3), (F, 3) decimated to about ``max_faces`` triangles by
-    quadric error (VTK's vtkQuadricDecimation through pyvista), as (V', 3) float64 and
-    (F', 3) int32. A surface with at most ``max_faces`` triangles comes back unchanged."""
+    quadric error (VTK's vtkQuadricDecimation through pyvista, duplicate points merged), as
+    (V', 3) float64 and (F', 3) int32. A surface with at most ``max_faces`` triangles comes back unchanged."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     if max_faces < 4:
@@ -550,7 +550,7 @@ def decimate_surface(vertices, faces, max_faces: int) -> tuple[np.ndarray, np.nd
     import pyvista as pv
 
     poly = pv.PolyData(v, np.hstack([np.full((len(f), 1), 3), f]).ravel())
-    out = poly.decimate(1.0 - max_faces / len(f))
+    out = poly.decimate(1.0 - max_faces / len(f)).clean()
     return np.asarray(out.points, dtype=np.float64), np.asarray(out.faces).reshape(-1, 4)[:, 1:].astype(np.int32)
 
 

@@ -98,15 +98,6 @@ def _marching_cubes(field: np.ndarray, origin, spacing: float, level: float):
     return verts, faces
 
 
-def _decimate(verts, faces, target: int):
-    """Quadric decimation of a closed surface to about ``target`` triangles."""
-    import pyvista as pv
-
-    pd = pv.PolyData(verts, np.hstack([np.full((len(faces), 1), 3), faces]).ravel())
-    d = pd.decimate(1.0 - target / len(faces)).clean()
-    return np.asarray(d.points, dtype=np.float64), d.faces.reshape(-1, 4)[:, 1:].astype(np.int32)
-
-
 def hull_surface(dataset, *, settings: VisualHullSettings | None = None, device: str = "cpu", bar=None):
     """Carve and extract the visual-hull surface.
 
@@ -167,7 +158,9 @@ def hull_surface(dataset, *, settings: VisualHullSettings | None = None, device:
         raise VisualHullError("marching cubes produced no closed surface")
     mc_faces = len(faces)
     if len(faces) > st.max_surface_faces:
-        verts, faces = _decimate(verts, faces, st.max_surface_faces)
+        from holowarp.tetmesh import decimate_surface
+
+        verts, faces = decimate_surface(verts, faces, st.max_surface_faces)
     info.update(
         grid_shape=list(shape),
         spacing=spacing,
