@@ -68,3 +68,15 @@ def test_drop_matches_newton_vbd():
     cd = chamfer_metrics(pa, na, pb, nb)["chamfer_l1"]
     assert cd < 0.005, cd
     print(f"newton comparison: COM error {com_err:.4f} of the drop height, final Chamfer {cd:.4f}")
+
+
+def test_the_sim_bench_never_offers_the_reference_setting_as_a_candidate():
+    from holowarp.bench.sim import candidate_grid
+
+    grid = ((64, 256, 512, 1024), (1, 4, 8))
+    pairs = candidate_grid(grid, (512, 4))
+    # The reference's own setting, and anything at least as fine in both, would reproduce it.
+    assert (512, 4) not in pairs and (512, 8) not in pairs and (1024, 4) not in pairs
+    # Finer in one, coarser in the other stays a candidate, and so does everything coarser.
+    assert {(512, 1), (1024, 1), (256, 8), (64, 4)} <= set(pairs)
+    assert len(pairs) == 12 - 4
