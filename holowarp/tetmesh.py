@@ -440,14 +440,19 @@ class TetMesh:
         return int(round((2 * shells - self.euler_characteristic()) / 2))
 
     # ------------------------------------------------------------------ quality
+    @functools.cached_property
+    def _face_area_vectors(self) -> tuple[np.ndarray, np.ndarray]:
+        """Area vectors of the local faces (M, 4, 3), outward for positive tets, magnitude
+        twice the face's area, and their norms (M, 4)."""
+        a, b, c, d = self._corners()
+        f = np.stack([a, b, c, d], axis=1)[:, TET_FACES]  # [M, 4, 3, 3]
+        n = np.cross(f[:, :, 1] - f[:, :, 0], f[:, :, 2] - f[:, :, 0])
+        return n, np.linalg.norm(n, axis=2)
+
     def dihedral_angles(self) -> np.ndarray:
         """Interior dihedral angles (M, 6) float64 in degrees, column k at local edge
         ``TET_EDGES[k]``; nan for a degenerate tet (a face of zero area)."""
-        a, b, c, d = self._corners()
-        f = np.stack([a, b, c, d], axis=1)[:, TET_FACES]  # [M, 4, 3, 3]
-        # Area vectors of local faces (outward for positive tets); magnitude = 2 * area.
-        n = np.cross(f[:, :, 1] - f[:, :, 0], f[:, :, 2] - f[:, :, 0])
-        nn = np.linalg.norm(n, axis=2)
+        n, nn = self._face_area_vectors
         with np.errstate(divide="ignore", invalid="ignore"):
             cosang = -np.einsum("mek,mek->me", n[:, _EDGE_OPPOSITE[:, 0]], n[:, _EDGE_OPPOSITE[:, 1]]) / (
                 nn[:, _EDGE_OPPOSITE[:, 0]] * nn[:, _EDGE_OPPOSITE[:, 1]]
@@ -466,10 +471,7 @@ class TetMesh:
         """
         a, b, c, d = self._corners()
         P = np.stack([a, b, c, d], axis=1)  # [M, 4, 3]
-        # Area vectors of local faces (outward for positive tets); magnitude = 2 * area.
-        f = P[:, TET_FACES]  # [M, 4, 3, 3]
-        n = np.cross(f[:, :, 1] - f[:, :, 0], f[:, :, 2] - f[:, :, 0])  # [M, 4, 3]
-        nn = np.linalg.norm(n, axis=2)  # [M, 4]
+        _, nn = self._face_area_vectors  # [M, 4]: twice the face areas
         vol = np.abs(self._signed_volumes)
         dihedral = self.dihedral_angles()  # [M, 6]
         with np.errstate(divide="ignore", invalid="ignore"):

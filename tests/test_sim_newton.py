@@ -80,3 +80,4 @@ def test_the_sim_bench_never_offers_the_reference_setting_as_a_candidate():
     # Finer in one, coarser in the other stays a candidate, and so does everything coarser.
     assert {(512, 1), (1024, 1), (256, 8), (64, 4)} <= set(pairs)
     assert len(pairs) == 12 - 4
+    assert len(candidate_grid(grid)) == 12

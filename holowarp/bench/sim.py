@@ -209,11 +209,11 @@ class _Judge:
 
 
 def _search(engine: str, sc: Scenario, judge: _Judge, device: str, grid) -> dict:
-    """The cheapest candidate within the tolerances (module docstring), and every candidate
+    """The cheapest of the candidate pairs ``grid`` [(S, I), ...] within the tolerances
+    (module docstring), and every candidate
     tried with its errors (runs stop once their COM leaves ``ABORT_BAND`` times the band)."""
     tried, dead = [], set()
-    pairs = grid if isinstance(grid, list) else [(S, I) for S in grid[0] for I in grid[1]]
-    for S, I in sorted(pairs, key=lambda p: (p[0] * p[1], p[0])):
+    for S, I in sorted(grid, key=lambda p: (p[0] * p[1], p[0])):
         if S in dead:
             continue
         com, final, _ = _RUNNERS[engine](sc, S, I, device=device, abort=_make_abort(judge))
@@ -232,12 +232,16 @@ def _search(engine: str, sc: Scenario, judge: _Judge, device: str, grid) -> dict
     return {"reached": False, "best": best, "tried": tried}
 
 
-def candidate_grid(grid, reference):
-    """holowarp's candidate pairs ``grid`` = (substeps, iterations) without the settings at
-    least as fine as the reference's in both (``reference`` = (S, I)): the reference's own
-    setting reproduces it exactly and would pass at zero error. Returns a list of (S, I)."""
+def candidate_grid(grid, reference=None):
+    """The candidate pairs [(S, I), ...] of ``grid`` = (substeps, iterations). With a
+    ``reference`` (S, I) (holowarp's own engine), without the settings at least as fine as
+    the reference's in both: the reference's own setting reproduces it exactly and would
+    pass at zero error."""
+    pairs = [(S, I) for S in grid[0] for I in grid[1]]
+    if reference is None:
+        return pairs
     Sr, Ir = reference
-    return [(S, I) for S in grid[0] for I in grid[1] if not (S >= Sr and I >= Ir)]
+    return [(S, I) for S, I in pairs if not (S >= Sr and I >= Ir)]
 
 
 def _passes(rec: dict, com_tol: float, cd_tol: float) -> bool:
@@ -390,9 +394,7 @@ def _scene_child(kind: str, n: int, duration: float, reference: str, steps: int,
            "fall_height_m": judge.height, "reference": {"engine": "holowarp", "substeps": Sr, "iterations": Ir,
                                                          "seconds": time.perf_counter() - t0}}
     for engine in ("holowarp",) + (("newton",) if use_newton else ()):
-        grid = grids[0] if engine == "holowarp" else grids[1]
-        if engine == "holowarp":
-            grid = candidate_grid(grid, (Sr, Ir))
+        grid = candidate_grid(grids[0], (Sr, Ir)) if engine == "holowarp" else candidate_grid(grids[1])
         found = _search(engine, sc, judge, device, grid)
         setting = found if found["reached"] else found["best"]
         timing = _in_process(_time_one, engine, kind, n, duration, setting["substeps"], setting["iterations"], steps,

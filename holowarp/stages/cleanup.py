@@ -128,18 +128,29 @@ def ridge_wedges(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
     """The boundary edges (E, 2) int64 and the solid's wedge angle at each (E,) float64, in
     degrees: the sum of the dihedral angles of the tets around the edge (180 on a flat
     surface, under 90 on a convex ridge sharper than a box's, near 0 on a knife edge)."""
+    edges, wedge_of = _ridge_index(mesh)
+    return edges, wedge_of(mesh)
+
+
+def _ridge_index(mesh: TetMesh):
+    """(boundary edges (E, 2), ``wedge_of(m)``): the wedge angles (E,) of those edges in any
+    mesh ``m`` with ``mesh``'s tets (the edge-to-tet bookkeeping is done once)."""
     from holowarp.tetmesh import TET_EDGES, _row_keys
 
     edges, _ = mesh._boundary_edges
     n = max(mesh.num_vertices, 1)
     tet_keys = _row_keys(np.sort(mesh.tets[:, TET_EDGES].reshape(-1, 2), axis=1).astype(np.int64), n)
     uk, inv = np.unique(tet_keys, return_inverse=True)
-    wedge = np.bincount(inv, weights=np.nan_to_num(mesh.dihedral_angles().ravel()), minlength=len(uk))
-    return edges, wedge[np.searchsorted(uk, _row_keys(edges, n))]
+    at = np.searchsorted(uk, _row_keys(edges, n))
+
+    def wedge_of(m: TetMesh) -> np.ndarray:
+        return np.bincount(inv, weights=np.nan_to_num(m.dihedral_angles().ravel()), minlength=len(uk))[at]
+
+    return edges, wedge_of
 
 
 def blunt_ridges(mesh: TetMesh, config: CleanupConfig, min_volume: float = 0.0) -> tuple[TetMesh, dict]:
-    """Step 6 of the module docstring: open the knife ridges of the boundary.
+    """Step 7 of the module docstring: open the knife ridges of the boundary.
 
     A boundary edge whose wedge angle (:func:`ridge_wedges`) is below
     ``config.blunt_wedge_deg`` can only be cut by tets whose dihedral angle at that edge is
@@ -147,7 +158,8 @@ def blunt_ridges(mesh: TetMesh, config: CleanupConfig, min_volume: float = 0.0) 
     of their boundary neighbours (an umbrella step along the surface, which pulls a ridge
     back into the body), for at most ``config.blunt_rounds`` rounds and
     ``config.blunt_max_move`` mean boundary edges in all. A vertex whose move would leave a
-    tet of its star with a signed volume at or below ``min_volume`` stays where it is.
+    tet of its star with a signed volume at or below ``min_volume`` tries half the step,
+    three times, then stays where it is for that round.
 
     Returns (mesh with the moved vertices, report): ``sharp_edges_before``,
     ``sharp_edges_after``, ``vertices_moved``, ``max_move_mean_edges``, ``rounds``.
@@ -159,7 +171,8 @@ def blunt_ridges(mesh: TetMesh, config: CleanupConfig, min_volume: float = 0.0) 
             "rounds": 0}
     if config.blunt_wedge_deg <= 0 or len(bf) == 0:
         return mesh, info
-    edges, wedge = ridge_wedges(mesh)
+    edges, wedge_of = _ridge_index(mesh)
+    wedge = wedge_of(mesh)
     L = float(np.linalg.norm(V[edges[:, 0]] - V[edges[:, 1]], axis=1).mean())
     allowance = np.full(len(V), config.blunt_max_move * L)
     he = np.concatenate([bf[:, [0, 1]], bf[:, [1, 2]], bf[:, [2, 0]]])
@@ -197,7 +210,7 @@ def blunt_ridges(mesh: TetMesh, config: CleanupConfig, min_volume: float = 0.0) 
         V = Vn
         info["rounds"] += 1
         work = mesh.with_vertices(V.astype(mesh.vertices.dtype))
-        sharp = ridge_wedges(work)[1] < config.blunt_wedge_deg
+        sharp = wedge_of(work) < config.blunt_wedge_deg
     total = config.blunt_max_move * L - allowance
     info["sharp_edges_after"] = int(sharp.sum())
     info["vertices_moved"] = int(np.count_nonzero(total > 0))
