@@ -3,7 +3,9 @@
 One substep of :class:`holowarp.sim.SolverVBDNeoHookean` launches, in order:
 
 1. :func:`vbd_predict` (per particle): the inertial target ``y = x + h v + h^2 g`` of implicit
-   Euler and the substep's start state; :func:`vbd_component_inertia`,
+   Euler (or BDF2's, with ``h_e = 2h/3`` in place of ``h`` in the potential and the
+   displacement ``lag = d_n / 3`` that makes no velocity; see
+   :mod:`holowarp.sim.solver`) and the substep's start state; :func:`vbd_component_inertia`,
    :func:`vbd_component_motion` and :func:`vbd_rigid_guess`: the initial guess, every
    face-connected piece moved rigidly with its mean and angular velocity (plus the part of
    gravity it accelerated with in the last substep: VBD's adaptive initialisation, Chen et
@@ -23,8 +25,8 @@ One substep of :class:`holowarp.sim.SolverVBDNeoHookean` launches, in order:
    (Gauss-Seidel): every vertex moves to the minimiser of a majoriser of the step's
    incremental potential with all other vertices held, subject to the ground and plate
    half-spaces.
-4. :func:`vbd_finalize`: position and velocity (displacement / h), restitution, damping, the
-   acceleration for the next initial guess, contact forces.
+4. :func:`vbd_finalize`: position and velocity (``(displacement - lag) / h_e``), restitution,
+   damping, the acceleration for the next initial guess, BDF2's history, contact forces.
 
 The iterate is each particle's displacement over the substep, not its position: a float32
 position differenced with the start position to get a velocity keeps only
@@ -215,9 +217,10 @@ def _gap(qs: wp.array(dtype=wp.vec3), dq: wp.array(dtype=wp.vec3), v: int, ja: i
 
 
 @wp.func
-def _slip(dq: wp.array(dtype=wp.vec3), v: int, ja: int, jb: int, jc: int, w: wp.vec3):
-    """The vertex's displacement over the substep relative to the triangle point's."""
-    return dq[v] - (dq[ja] * w[0] + dq[jb] * w[1] + dq[jc] * w[2])
+def _slip(dq: wp.array(dtype=wp.vec3), lag: wp.array(dtype=wp.vec3), v: int, ja: int, jb: int, jc: int, w: wp.vec3):
+    """The vertex's velocity-making displacement over the substep (``dq - lag``: the
+    integrator's velocity is ``(dq - off) / h_eff``) relative to the triangle point's."""
+    return (dq[v] - lag[v]) - ((dq[ja] - lag[ja]) * w[0] + (dq[jb] - lag[jb]) * w[1] + (dq[jc] - lag[jc]) * w[2])
 
 
 @wp.func
@@ -278,17 +281,21 @@ def vbd_predict(
     mass: wp.array(dtype=float),  # [N]
     inv_mass: wp.array(dtype=float),  # [N]
     particle_component: wp.array(dtype=wp.int32),  # [N]
+    dq_in: wp.array(dtype=wp.vec3),  # [N] displacement over the last substep (BDF2 only)
     gravity: wp.vec3,
     h: float,
+    bdf2: int,  # 1: BDF2 (needs the last substep, of the same h), 0: implicit Euler
     surf: SurfaceData,
     q_start: wp.array(dtype=wp.vec3),  # [N]
     qd_start: wp.array(dtype=wp.vec3),  # [N]
-    inertia: wp.array(dtype=wp.vec3),  # [N] y - x = h v + h^2 g: the inertial target's displacement
+    inertia: wp.array(dtype=wp.vec3),  # [N] y - x: the inertial target's displacement
+    lag: wp.array(dtype=wp.vec3),  # [N] the part of the displacement that makes no velocity
     surf_force: wp.array2d(dtype=wp.vec3),  # [N, S] cleared
     sum_m: wp.array(dtype=float),  # [C] += mass of each component (zeroed first)
     sum_mx: wp.array(dtype=wp.vec3),  # [C] += m x
     sum_mv: wp.array(dtype=wp.vec3),  # [C] += m v
     sum_ma: wp.array(dtype=wp.vec3),  # [C] += m a (last substep)
+    sum_ml: wp.array(dtype=wp.vec3),  # [C] += m lag
 ):
     i = wp.tid()
     x = q_in[i]
@@ -299,14 +306,23 @@ def vbd_predict(
         surf_force[i, s] = wp.vec3(0.0)
     if inv_mass[i] == 0.0:
         inertia[i] = wp.vec3(0.0)
+        lag[i] = wp.vec3(0.0)
+    elif bdf2 != 0:
+        # BDF2 (module docstring): y - x_n = d_n / 3 + 2h/3 (4/3 v_n - 1/3 v_(n-1)) + (2h/3)^2 g
+        # with v_(n-1) = v_n - h a_n; the velocity is (dq - d_n / 3) / (2h/3).
+        d = dq_in[i] * (1.0 / 3.0)
+        inertia[i] = d + (v + qdd_in[i] * (h / 3.0)) * (2.0 * h / 3.0) + gravity * (4.0 * h * h / 9.0)
+        lag[i] = d
     else:
         inertia[i] = (v + gravity * h) * h
+        lag[i] = wp.vec3(0.0)
     c = particle_component[i]
     m = mass[i]
     wp.atomic_add(sum_m, c, m)
     wp.atomic_add(sum_mx, c, x * m)
     wp.atomic_add(sum_mv, c, v * m)
     wp.atomic_add(sum_ma, c, qdd_in[i] * m)
+    wp.atomic_add(sum_ml, c, lag[i] * m)
 
 
 @wp.kernel
@@ -338,16 +354,30 @@ def _adaptive_gravity(acc: wp.vec3, gravity: wp.vec3):
     return wp.vec3(0.0)
 
 
+@wp.func
+def _extrapolate(lag: wp.vec3, v: wp.vec3, acc: wp.vec3, gravity: wp.vec3, h: float, bdf2: int):
+    """The initial guess's displacement over a substep from the velocity ``v``, the last
+    substep's acceleration ``acc`` and (BDF2) ``lag``, with the adaptive part of gravity:
+    the integrator's inertial target when that part is all of it, so free flight is exact
+    after one sweep."""
+    ga = _adaptive_gravity(acc, gravity)
+    if bdf2 != 0:
+        return lag + (v + acc * (h / 3.0)) * (2.0 * h / 3.0) + ga * (4.0 * h * h / 9.0)
+    return (v + ga * h) * h
+
+
 @wp.kernel
 def vbd_component_motion(
     sum_m: wp.array(dtype=float),  # [C]
     sum_mx: wp.array(dtype=wp.vec3),  # [C]
     sum_mv: wp.array(dtype=wp.vec3),  # [C]
     sum_ma: wp.array(dtype=wp.vec3),  # [C]
+    sum_ml: wp.array(dtype=wp.vec3),  # [C]
     ang: wp.array(dtype=wp.vec3),  # [C]
     inertia_tensor: wp.array(dtype=wp.mat33),  # [C]
     gravity: wp.vec3,
     h: float,
+    bdf2: int,
     com: wp.array(dtype=wp.vec3),  # [C] out: centre of mass
     disp: wp.array(dtype=wp.vec3),  # [C] out: translation of the guess over the substep
     rot: wp.array(dtype=wp.mat33),  # [C] out: rotation of the guess over the substep
@@ -357,7 +387,7 @@ def vbd_component_motion(
     c = wp.tid()
     M = sum_m[c]
     com[c] = sum_mx[c] / M
-    disp[c] = (sum_mv[c] / M + _adaptive_gravity(sum_ma[c] / M, gravity) * h) * h
+    disp[c] = _extrapolate(sum_ml[c] / M, sum_mv[c] / M, sum_ma[c] / M, gravity, h, bdf2)
     I = inertia_tensor[c]
     R = wp.identity(n=3, dtype=float)
     scale = I[0, 0] + I[1, 1] + I[2, 2]
@@ -382,8 +412,10 @@ def vbd_rigid_guess(
     com: wp.array(dtype=wp.vec3),  # [C]
     disp: wp.array(dtype=wp.vec3),  # [C]
     rot: wp.array(dtype=wp.mat33),  # [C]
+    lag: wp.array(dtype=wp.vec3),  # [N] (vbd_predict)
     gravity: wp.vec3,
     h: float,
+    bdf2: int,
     beta: float,  # in [0, 1]: how much of each particle's own deformation rate to carry on
     dq: wp.array(dtype=wp.vec3),  # [N] out: the guess's displacement from q_start
 ):
@@ -398,7 +430,7 @@ def vbd_rigid_guess(
         dq[i] = wp.vec3(0.0)
         return
     c = particle_component[i]
-    own = (qd_start[i] + _adaptive_gravity(qdd_in[i], gravity) * h) * h
+    own = _extrapolate(lag[i], qd_start[i], qdd_in[i], gravity, h, bdf2)
     if component_free[c] != 0:
         r = q_start[i] - com[c]
         rigid = rot[c] * r - r + disp[c]
@@ -611,9 +643,11 @@ def vbd_solve_vertices(
     dq: wp.array(dtype=wp.vec3),  # [N] in/out: displacements from q_start (the iterate)
     q_start: wp.array(dtype=wp.vec3),  # [N] positions at the substep's start
     inertia: wp.array(dtype=wp.vec3),  # [N] y - q_start
+    lag: wp.array(dtype=wp.vec3),  # [N] displacement that makes no velocity (vbd_predict)
     mass: wp.array(dtype=float),  # [N]
     inv_mass: wp.array(dtype=float),  # [N]
-    inv_h2: float,
+    inv_h2: float,  # 1 / h_eff^2 (h_eff = h, or 2h/3 for BDF2)
+    kappa: float,  # h_eff / h
     tets: TetData,
     surf: SurfaceData,
     con: ContactData,
@@ -685,7 +719,7 @@ def vbd_solve_vertices(
                 n = con.slot_n[i, s]
                 pen = con.radius - wp.dot(_gap(q_start, dq, i, ja, jb, jc, w), n)
                 if pen > 0.0:
-                    sl = _slip(dq, i, ja, jb, jc, w)
+                    sl = _slip(dq, lag, i, ja, jb, jc, w)
                     ff, Hf = _friction(con.slot_mu[i, s] * con.slot_k[i, s] * pen, sl - n * wp.dot(sl, n), n,
                                        con.friction_eps)
                     f = f + ff
@@ -705,7 +739,7 @@ def vbd_solve_vertices(
                 pen = con.radius - wp.dot(_gap(q_start, dq, v, ja, jb, jc, w), n)
                 if pen > 0.0:
                     wc = w[corner]
-                    sl = _slip(dq, v, ja, jb, jc, w)
+                    sl = _slip(dq, lag, v, ja, jb, jc, w)
                     ff, Hf = _friction(con.slot_mu[v, s] * con.slot_k[v, s] * pen, sl - n * wp.dot(sl, n), n,
                                        con.friction_eps)
                     f = f - ff * wc
@@ -760,7 +794,7 @@ def vbd_solve_vertices(
             lam = -d / wp.dot(n, Hn)  # normal force, N
             u_c = u_new + Hn * lam
             disp_s = (surf.end[s] - surf.start[s]) * (surf.alpha1 - surf.alpha0)
-            rel = u_c - disp_s
+            rel = u_c - lag[i] - disp_s * kappa  # velocity-making slip, times h_eff
             delta = wp.dot(rel, n) * n - rel  # move that cancels the tangential slip
             h_t = 0.5 * (H[0, 0] + H[1, 1] + H[2, 2] - wp.dot(n, H * n))
             need = h_t * wp.length(delta)
@@ -781,6 +815,7 @@ def vbd_solve_vertices(
 @wp.kernel
 def vbd_finalize(
     dq: wp.array(dtype=wp.vec3),  # [N] the substep's displacements
+    lag: wp.array(dtype=wp.vec3),  # [N] displacement that makes no velocity (vbd_predict)
     q_start: wp.array(dtype=wp.vec3),  # [N]
     qd_start: wp.array(dtype=wp.vec3),  # [N]
     inv_mass: wp.array(dtype=float),  # [N]
@@ -788,23 +823,28 @@ def vbd_finalize(
     restitution: wp.array(dtype=float),  # [S]
     surf_force: wp.array2d(dtype=wp.vec3),  # [N, S]
     h: float,
+    h_eff: float,  # h, or 2h/3 for BDF2
+    restart_history: int,  # 1: the next substep may be BDF2, restart its history at impacts
     bounce_threshold: float,  # m/s: slower approach speeds do not bounce
     damping_factor: float,  # velocity scale per substep, in (0, 1]
     force_scale: float,  # 1 / substeps: mean force over the step
     q_out: wp.array(dtype=wp.vec3),  # [N] q_start + dq
     qd_out: wp.array(dtype=wp.vec3),  # [N]
     qdd_out: wp.array(dtype=wp.vec3),  # [N]
+    dq_out: wp.array(dtype=wp.vec3),  # [N] the substep's displacement (the next BDF2 step's d_n)
     surf_total: wp.array(dtype=wp.vec3),  # [S] += mean force of surface s on the bodies, N
 ):
     i = wp.tid()
     q_out[i] = q_start[i] + dq[i]
+    dq_out[i] = dq[i] * damping_factor  # BDF2's history is damped with the velocity
     if inv_mass[i] == 0.0:
         qd_out[i] = wp.vec3(0.0)
         qdd_out[i] = wp.vec3(0.0)
         return
     inv_h = 1.0 / h
-    v = dq[i] * inv_h
+    v = (dq[i] - lag[i]) * (1.0 / h_eff)
     v0 = qd_start[i]
+    jumped = int(0)
     for s in range(surf.count):
         fs = surf_force[i, s]
         n = surf.normal[s]
@@ -815,9 +855,17 @@ def vbd_finalize(
             vn_pre = wp.dot(v0 - vs, n)
             if vn_pre < -bounce_threshold:
                 v = v + n * (-restitution[s] * vn_pre - wp.dot(v - vs, n))
+                jumped = 1
     v = v * damping_factor
     qd_out[i] = v
-    qdd_out[i] = (v - v0) * inv_h
+    if jumped != 0 and restart_history != 0:
+        # An impact is a velocity jump: BDF2's history (the last displacement and velocity)
+        # from before it would carry the approach on and lift the vertex off again. Restart
+        # it as steady motion at the new velocity (the target is then x + h v + (2h/3)^2 g).
+        dq_out[i] = v * h
+        qdd_out[i] = wp.vec3(0.0)
+    else:
+        qdd_out[i] = (v - v0) * inv_h
 
 
 # ---------------------------------------------------------------------------- contacts

@@ -56,7 +56,9 @@ def test_drop_writes_animated_usd_and_report(tmp_path, box_vtu, capsys):
     assert 0.95 < report["min_volume_ratio"] <= 1.0 + 1e-6 <= report["max_volume_ratio"] + 1e-6
     assert report["com"][0][2] == pytest.approx(0.3, abs=1e-6)  # 0.2 m cube, 0.2 m above ground
     assert report["com"][-1][2] == pytest.approx(0.1, abs=0.003)
-    assert report["plan"] == {"dt": 1 / 60, "substeps": 1, "iterations": 16, "softened_tets": 0, "solver": "vbd"}
+    # At 1/60 s a substep is far longer than a wave takes to cross an edge: "auto" is implicit Euler.
+    assert report["plan"] == {"dt": 1 / 60, "substeps": 1, "iterations": 16, "softened_tets": 0, "solver": "vbd",
+                              "integrator": "euler"}
     assert report["max_penetration"] < 1e-6 and report["inverted_frames"] == []
 
     stage = Usd.Stage.Open(str(out / "sim.usda"))
@@ -145,6 +147,7 @@ def test_render_writes_png_frames(tmp_path, box_vtu):
         ("poissons_ratio = 0.5", r"\[material\] poissons_ratio: must lie in \[0, 0.5\)"),
         ("frcition = 0.3", r"\[material\] unknown key\(s\) frcition"),
         ("dt = 0.01", r"\[sim\] dt: must be 1/60 s divided by a whole number"),
+        ('integrator = "rk4"', r"\[sim\] integrator: expected one of 'auto', 'euler', 'bdf2', got 'rk4'"),
     ],
 )
 def test_bad_scene_value_is_reported_with_file_and_key(tmp_path, box_vtu, capsys, edit, message):

@@ -10,7 +10,7 @@ silently.
 Layout (all SI; see ``scenes/drop.toml`` for a commented example)::
 
     name = "drop"
-    [sim]        dt, substeps, iterations, duration, gravity, damping
+    [sim]        dt, substeps, iterations, duration, gravity, damping, integrator
     [material]   youngs_modulus, poissons_ratio, density, friction, restitution
     [placement]  size, rotation, center_xy, height, velocity
     [ground]     enabled
@@ -44,7 +44,7 @@ import numpy as np
 
 from holowarp.errors import InputError
 from holowarp.sim.model import GRAVITY, ModelBuilder, euler_xyz_to_matrix
-from holowarp.sim.solver import CONTACT_STIFFNESS, FRICTION_EPSILON, PAPER_DT, PAPER_ITERATIONS
+from holowarp.sim.solver import CONTACT_STIFFNESS, FRICTION_EPSILON, INTEGRATORS, PAPER_DT, PAPER_ITERATIONS
 
 __all__ = [
     "SceneError",
@@ -77,6 +77,7 @@ class SimSettings:
     duration: float = 1.0  # s
     gravity: tuple = (0.0, 0.0, -GRAVITY)  # m/s²
     damping: float = 0.0  # 1/s
+    integrator: str = "auto"  # "auto", "euler" or "bdf2" (holowarp.sim.solver.INTEGRATORS)
 
 
 @dataclass(frozen=True)
@@ -229,7 +230,11 @@ def parse_scene(data: dict, *, source: str = "<scene>") -> Scene:
         raise SceneError(f"{src}: name must be a non-empty string, got {name!r}")
 
     d = SimSettings()
-    t = _table(src, data, "sim", {"dt", "substeps", "iterations", "duration", "gravity", "damping"})
+    t = _table(src, data, "sim", {"dt", "substeps", "iterations", "duration", "gravity", "damping", "integrator"})
+    integ = t.get("integrator", d.integrator)
+    if integ not in INTEGRATORS:
+        raise SceneError(f"{src}: [sim] integrator: expected one of {', '.join(repr(i) for i in INTEGRATORS)}, "
+                         f"got {integ!r}")
     sim = SimSettings(
         dt=_num(src, "sim", "dt", t.get("dt", d.dt), lo=0.0, lo_open=True, hi=1.0),
         substeps=_num(src, "sim", "substeps", t.get("substeps", d.substeps), lo=1, hi=1024, integer=True),
@@ -237,6 +242,7 @@ def parse_scene(data: dict, *, source: str = "<scene>") -> Scene:
         duration=_num(src, "sim", "duration", t.get("duration", d.duration), lo=0.0, lo_open=True),
         gravity=_vec(src, "sim", "gravity", t.get("gravity", d.gravity), 3, bound=MAX_MAGNITUDE),
         damping=_num(src, "sim", "damping", t.get("damping", d.damping), lo=0.0),
+        integrator=integ,
     )
     if sim.duration < sim.dt:
         raise SceneError(f"{src}: [sim] duration ({sim.duration} s) is shorter than one step dt ({sim.dt} s)")
@@ -480,7 +486,8 @@ def build_model(scene: Scene, meshes, *, transform=None, device: str = "cpu", na
 def solver_options(scene: Scene) -> dict:
     """Keyword arguments of :class:`holowarp.sim.SolverVBDNeoHookean` that ``scene`` sets."""
     sim, c = scene.sim, scene.contact
-    return dict(iterations=sim.iterations, substeps=sim.substeps, damping=sim.damping, contact_radius=c.radius,
+    return dict(iterations=sim.iterations, substeps=sim.substeps, damping=sim.damping, integrator=sim.integrator,
+                contact_radius=c.radius,
                 contact_margin=c.margin, contact_stiffness=c.stiffness, self_collision=c.self_collision,
                 friction_epsilon=c.friction_epsilon)
 
