@@ -219,7 +219,7 @@ def _gap(qs: wp.array(dtype=wp.vec3), dq: wp.array(dtype=wp.vec3), v: int, ja: i
 @wp.func
 def _slip(dq: wp.array(dtype=wp.vec3), lag: wp.array(dtype=wp.vec3), v: int, ja: int, jb: int, jc: int, w: wp.vec3):
     """The vertex's velocity-making displacement over the substep (``dq - lag``: the
-    integrator's velocity is ``(dq - off) / h_eff``) relative to the triangle point's."""
+    integrator's velocity is ``(dq - lag) / h_e``) relative to the triangle point's."""
     return (dq[v] - lag[v]) - ((dq[ja] - lag[ja]) * w[0] + (dq[jb] - lag[jb]) * w[1] + (dq[jc] - lag[jc]) * w[2])
 
 

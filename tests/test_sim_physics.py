@@ -214,6 +214,43 @@ def test_vertex_block_step_lands_on_the_minimiser_of_the_quadratic_majoriser(rng
     assert G(got) < G(p0)
 
 
+@pytest.mark.parametrize("bdf2", [0, 1])
+def test_inertial_target_matches_numpy(rng, bdf2):
+    """vbd_predict's target displacement y - x_n and its velocity-free part, against the
+    float64 formulas: implicit Euler h v + h^2 g; BDF2 d/3 + 2h/3 (4/3 v_n - 1/3 v_(n-1))
+    + (2h/3)^2 g with v_(n-1) = v_n - h a_n, and lag d/3 (0 for fixed particles)."""
+    K = _K()
+    mesh = box_tetmesh((2, 2, 2), (0.1, 0.1, 0.1))
+    b = ModelBuilder()
+    b.add_soft_mesh(mesh, youngs_modulus=2e5, poissons_ratio=0.3, fixed=mesh.vertices[:, 2] > 0.1 - 1e-9)
+    m = b.finalize()
+    sol = SolverVBDNeoHookean(m)
+    N, h = m.particle_count, 1.0 / 600.0
+    x, v, a, d = (rng.normal(size=(N, 3)) * s for s in (0.1, 0.5, 9.0, 1e-3))
+    g = np.array([0.3, -0.2, -9.81])
+    arr = [wp.array(z.astype(np.float32), dtype=wp.vec3) for z in (x, v, a, d)]
+    out = [wp.zeros(N, dtype=wp.vec3) for _ in range(4)]
+    C = m.component_count
+    sums = [wp.zeros(C, dtype=float)] + [wp.zeros(C, dtype=wp.vec3) for _ in range(4)]
+    wp.launch(K.vbd_predict, dim=N, inputs=[arr[0], arr[1], arr[2], m.particle_mass, m.particle_inv_mass,
+                                            m.particle_component, arr[3], wp.vec3(*g), h, bdf2, sol._surf],
+              outputs=[*out[:3], out[3], sol._surf_force, *sums])
+    v32, a32, d32 = (z.astype(np.float32).astype(np.float64) for z in (v, a, d))
+    if bdf2:
+        v_prev = v32 - h * a32
+        want = d32 / 3 + 2 * h / 3 * (4 / 3 * v32 - v_prev / 3) + (2 * h / 3) ** 2 * g
+        lag = d32 / 3
+    else:
+        want, lag = h * v32 + h * h * g, np.zeros_like(d32)
+    free = m.particle_inv_mass.numpy() > 0
+    assert (~free).any() and free.any()
+    np.testing.assert_allclose(out[2].numpy()[free], want[free], rtol=1e-5, atol=1e-9)
+    np.testing.assert_allclose(out[3].numpy()[free], lag[free], rtol=1e-5, atol=1e-10)
+    assert np.abs(out[2].numpy()[~free]).max() == 0 and np.abs(out[3].numpy()[~free]).max() == 0
+    np.testing.assert_allclose(sums[4].numpy()[0], (m.masses[:, None] * np.where(free[:, None], lag, 0)).sum(0),
+                               rtol=1e-4, atol=1e-12)
+
+
 def test_closest_point_on_triangle_matches_numpy(rng):
     K = _K()
     n = 200
