@@ -69,8 +69,9 @@ motion at the new velocity; otherwise the pre-impact history lifts it off the gr
 choice once a substep resolves a pressure wave crossing one edge (``"auto"``,
 :meth:`SolverVBDNeoHookean.integrator_for`); at longer substeps such as the paper's 1/60 s,
 implicit Euler's damping of the modes the step cannot resolve is what a few sweeps need
-(BDF2 there gained 0.7 % angular momentum on a spinning block in 10 steps), so ``"auto"``
-keeps it. A run's first substep, and any after a change of substep length, is implicit
+(BDF2 there gained 0.7 % angular momentum on a spinning block in 10 steps, and on a 50k-tet
+drop at 1.6 wave crossings per substep its centre of mass ended 44 % of the drop height
+off the converged one, with 4 sweeps or 8), so ``"auto"`` keeps it. A run's first substep, and any after a change of substep length, is implicit
 Euler.
 
 Contacts: the ground and plates are hard half-space constraints of each vertex's block
