@@ -273,6 +273,17 @@ def vbd_closest_points(
     out[i] = closest_point_triangle(p[i], tri_x[i, 0], tri_x[i, 1], tri_x[i, 2])
 
 
+@wp.func
+def _target(lag: wp.vec3, v: wp.vec3, acc: wp.vec3, g: wp.vec3, h: float, bdf2: int):
+    """The inertial target's displacement ``y - x_n`` over a substep under the acceleration
+    ``g``: implicit Euler's ``(v + g h) h``, or BDF2's
+    ``d_n / 3 + 2h/3 (4/3 v_n - 1/3 v_(n-1)) + (2h/3)^2 g`` with ``lag = d_n / 3`` and
+    ``v_(n-1) = v_n - h acc`` (``acc`` the last substep's acceleration)."""
+    if bdf2 != 0:
+        return lag + (v + acc * (h / 3.0)) * (2.0 * h / 3.0) + g * (4.0 * h * h / 9.0)
+    return (v + g * h) * h
+
+
 @wp.kernel
 def vbd_predict(
     q_in: wp.array(dtype=wp.vec3),  # [N]
@@ -307,15 +318,13 @@ def vbd_predict(
     if inv_mass[i] == 0.0:
         inertia[i] = wp.vec3(0.0)
         lag[i] = wp.vec3(0.0)
-    elif bdf2 != 0:
-        # BDF2 (module docstring): y - x_n = d_n / 3 + 2h/3 (4/3 v_n - 1/3 v_(n-1)) + (2h/3)^2 g
-        # with v_(n-1) = v_n - h a_n; the velocity is (dq - d_n / 3) / (2h/3).
-        d = dq_in[i] * (1.0 / 3.0)
-        inertia[i] = d + (v + qdd_in[i] * (h / 3.0)) * (2.0 * h / 3.0) + gravity * (4.0 * h * h / 9.0)
-        lag[i] = d
     else:
-        inertia[i] = (v + gravity * h) * h
-        lag[i] = wp.vec3(0.0)
+        # BDF2: the velocity is (dq - d_n / 3) / (2h/3) (solver module docstring).
+        d = wp.vec3(0.0)
+        if bdf2 != 0:
+            d = dq_in[i] * (1.0 / 3.0)
+        inertia[i] = _target(d, v, qdd_in[i], gravity, h, bdf2)
+        lag[i] = d
     c = particle_component[i]
     m = mass[i]
     wp.atomic_add(sum_m, c, m)
@@ -356,14 +365,10 @@ def _adaptive_gravity(acc: wp.vec3, gravity: wp.vec3):
 
 @wp.func
 def _extrapolate(lag: wp.vec3, v: wp.vec3, acc: wp.vec3, gravity: wp.vec3, h: float, bdf2: int):
-    """The initial guess's displacement over a substep from the velocity ``v``, the last
-    substep's acceleration ``acc`` and (BDF2) ``lag``, with the adaptive part of gravity:
-    the integrator's inertial target when that part is all of it, so free flight is exact
-    after one sweep."""
-    ga = _adaptive_gravity(acc, gravity)
-    if bdf2 != 0:
-        return lag + (v + acc * (h / 3.0)) * (2.0 * h / 3.0) + ga * (4.0 * h * h / 9.0)
-    return (v + ga * h) * h
+    """The initial guess's displacement over a substep: the integrator's inertial target
+    with only the adaptive part of gravity (all of it in free flight, so free flight is
+    exact after one sweep)."""
+    return _target(lag, v, acc, _adaptive_gravity(acc, gravity), h, bdf2)
 
 
 @wp.kernel

@@ -27,9 +27,9 @@ For each scene:
    with a surface within ``CHAMFER_TOLERANCE`` (0.005, Chamfer-L1 in the unit-cube
    frame of the rest scene, same barycentric samples on both) of the reference's. A
    candidate of a search stops at its first frame outside ``ABORT_BAND`` times the COM
-   band (a single given setting, ``--newton-settings``, runs to the end); a substep count whose free
-   fall already leaves the band is not tried with more iterations (iterations do not
-   change free flight);
+   band (a single given setting, ``--newton-settings``, runs to the end); a substep count
+   whose free fall already leaves the band is not tried with more iterations (iterations
+   do not change free flight);
 3. the cheapest passing setting of each engine is timed in a fresh process (one untimed
    warm-up step that compiles kernels, then ``--steps`` steps): steps per second, median
    step time, set-up time and the process's peak resident memory.

@@ -71,8 +71,8 @@ choice once a substep resolves a pressure wave crossing one edge (``"auto"``,
 implicit Euler's damping of the modes the step cannot resolve is what a few sweeps need
 (BDF2 there gained 0.7 % angular momentum on a spinning block in 10 steps, and on a 50k-tet
 drop at 1.6 wave crossings per substep its centre of mass ended 44 % of the drop height
-off the converged one, with 4 sweeps or 8), so ``"auto"`` keeps it. A run's first substep, and any after a change of substep length, is implicit
-Euler.
+off the converged one, with 4 sweeps or 8), so ``"auto"`` keeps it. A run's first
+substep, and any after a change of substep length, is implicit Euler.
 
 Contacts: the ground and plates are hard half-space constraints of each vertex's block
 problem with in-block Coulomb friction; bodies, and face-disconnected pieces of one mesh,
