@@ -57,7 +57,8 @@ def reconstruct(dataset_path=None, out_dir="runs/holowarp", *, config: ReconConf
     check_resume(out_dir, ckpt, config.to_dict(), dataset_path, resume=resume)
     dataset, data_dir = prepare_dataset(dataset_path, out_dir, config, device=device, progress=progress,
                                         resuming=ckpt is not None)
-    run = _Run(dataset, data_dir, dataset_path, out_dir, config, device, progress, ckpt)
+    run = _Run(dataset, data_dir, dataset_path, out_dir, _run_config(config, dataset, device, progress), device,
+               progress, ckpt, checkpoint_config=config)
     try:
         report = run.execute()
     finally:
@@ -69,12 +70,32 @@ def reconstruct(dataset_path=None, out_dir="runs/holowarp", *, config: ReconConf
     return report
 
 
+def _run_config(config: ReconConfig, dataset, device: str, progress: bool) -> ReconConfig:
+    """The config a run uses: ``config`` itself for one object; for a scene, its
+    length-valued settings at the scene's object size (:meth:`ReconConfig.at_object_size`,
+    measured from the masks unless ``scene.object_size`` gives it). Derived again on resume
+    (the same masks give the same size); checkpoints keep ``config``."""
+    if not config.scene.enabled:
+        return config
+    size = config.scene.object_size
+    if size is None:
+        from holowarp.stages.objects import measure_object_size
+
+        size = measure_object_size(dataset, device=device)
+    say(f"scene level: the largest object is {size:.3f} frame units wide; length-valued settings scaled to it",
+        progress)
+    return config.at_object_size(size)
+
+
 class _Run:
     """One reconstruction: its typed state, model and optimisers; a handler per phase and event."""
 
-    def __init__(self, dataset, data_dir, dataset_path, out_dir, config, device, progress, ckpt):
+    def __init__(self, dataset, data_dir, dataset_path, out_dir, config, device, progress, ckpt, *,
+                 checkpoint_config=None):
         self.ds, self.data_dir, self.dataset_path, self.out = dataset, Path(data_dir), dataset_path, Path(out_dir)
         self.cfg, self.device, self.progress = config, torch.device(device), progress
+        # What --resume compares against: the caller's config, before _run_config derives from it.
+        self.checkpoint_cfg = config if checkpoint_config is None else checkpoint_config
         self.state = ckpt.state if ckpt is not None else RunState()
         self.seconds_before, self._t0 = self.state.elapsed, time.perf_counter()
         self.ckpt, self.model, self.opts, self.evidence = ckpt, None, None, None
@@ -89,7 +110,7 @@ class _Run:
         st.elapsed = self.seconds_before + (time.perf_counter() - self._t0)
         self.losses.flush()
         st.history_lines = self.history.flush()
-        Checkpoint(self.cfg.to_dict(), str(self.dataset_path) if self.dataset_path else None, st,
+        Checkpoint(self.checkpoint_cfg.to_dict(), str(self.dataset_path) if self.dataset_path else None, st,
                    None if self.model is None else self.model.state_dict(),
                    None if self.opts is None else self.opts.state_dict()).save(self.out)
 

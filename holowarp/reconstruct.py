@@ -8,6 +8,7 @@ object (bob, genus 1) and reconstructs it. See :func:`holowarp.pipeline.reconstr
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import replace
 
@@ -49,6 +50,9 @@ def build_parser():
     p.add_argument("--objects", type=int, default=None, metavar="N",
                    help="with --scene-level: the capture holds N objects (default: the dataset's objects/ folders, "
                         "else one per component); touching objects are split by clustering")
+    p.add_argument("--object-size", type=float, default=None, metavar="S",
+                   help="with --scene-level: largest side of the largest object in the capture's frame units; the "
+                        "length-valued settings are scaled to it (default: measured from the masks' visual hull)")
     cli.add_device(p)
     cli.add_quiet(p)
     return p
@@ -84,7 +88,8 @@ def config_from_args(args):
     if args.no_improve:
         cfg = replace(cfg, improve=replace(cfg.improve, enabled=False))
     if not args.scene_level:
-        for flag, v in (("--min-component", args.min_component), ("--objects", args.objects)):
+        for flag, v in (("--min-component", args.min_component), ("--objects", args.objects),
+                        ("--object-size", args.object_size)):
             if v is not None:
                 cli.fail(f"{flag}: only with --scene-level")
     else:
@@ -92,7 +97,11 @@ def config_from_args(args):
             cli.fail(f"--min-component {args.min_component}: must lie in (0, 1]")
         if args.objects is not None and args.objects < 1:
             cli.fail(f"--objects {args.objects}: must be >= 1")
+        if args.object_size is not None and not (math.isfinite(args.object_size) and args.object_size > 0):
+            cli.fail(f"--object-size {args.object_size}: must be a finite number > 0")
         cfg = cfg.scene_level(min_component=args.min_component, objects=args.objects)
+        if args.object_size is not None:
+            cfg = replace(cfg, scene=replace(cfg.scene, object_size=args.object_size))
     return cfg
 
 

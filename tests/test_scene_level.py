@@ -57,6 +57,66 @@ def test_cleanup_keeps_both_separated_objects_only_at_scene_level():
     assert two.num_tets == both.num_tets and two.num_components() == 2 and info["components_removed"] == 0
 
 
+# ---------------------------------------------------------------------------- object size
+@pytest.mark.parametrize("k", [0.4, 2.5])
+def test_at_object_size_runs_the_same_field_optimisation_on_a_scaled_object(rng, k):
+    """A mesh k times smaller with phi' = k phi under ``at_object_size(k)`` gives the same
+    opacities, and Adam steps on the field objective (a target opacity per tet, L_eik and
+    L_smooth with the config's weights and learning rates) keep phi' = k phi and
+    kappa' = kappa / k."""
+    from holowarp.ops.tet_energy import phi_edge_losses
+    from holowarp.stages.topology import GaussianOptimizers
+    from holowarp.tetgs import TetGaussians
+    from holowarp.tetmesh import TetMesh
+    import torch
+
+    base = box_tetmesh((3, 3, 3), size=(1.0, 0.8, 0.6))
+    mesh = TetMesh(base.vertices + rng.uniform(-0.03, 0.03, base.vertices.shape), base.tets)
+    phi = rng.uniform(-0.2, 0.1, mesh.num_vertices)
+    target = torch.tensor(rng.uniform(0.05, 0.95, mesh.num_tets), dtype=torch.float32)
+    cfg = preset("fast")
+    scaled = cfg.at_object_size(k)
+    assert scaled.scene.object_size == k and cfg.scene.object_size is None
+    runs = []
+    for c, m, p in ((cfg, mesh, phi), (scaled, TetMesh(mesh.vertices * k, mesh.tets), phi * k)):
+        model = TetGaussians(m, phi=p, config=c.topology)
+        opts = GaussianOptimizers(model, c.topology, learn_scales=False)
+        edges = torch.tensor(np.array(m.edges()), dtype=torch.int32)
+        alphas = [model.field_opacities().detach().clone()]
+        for _ in range(3):
+            eik, smooth = phi_edge_losses(model.phi, edges, model.vertices.detach())
+            loss = ((model.field_opacities() - target) ** 2).mean() + c.topology.lam_eik * eik + \
+                c.topology.lam_smooth * smooth
+            opts.zero_grad()
+            loss.backward()
+            opts.step()
+        runs.append((alphas[0], model.phi.detach().numpy(), float(model.kappa.detach())))
+    (a0, phi0, kappa0), (a1, phi1, kappa1) = runs
+    assert torch.allclose(a0, a1, atol=1e-5)
+    assert not np.allclose(phi0, phi)  # the steps moved the field
+    assert np.allclose(phi1, k * phi0, rtol=1e-4, atol=1e-6 * k)
+    assert kappa1 == pytest.approx(kappa0 / k, rel=1e-4)
+    with pytest.raises(ValueError, match="object size"):
+        cfg.at_object_size(0.0)
+    with pytest.raises(ValueError, match="object_size"):
+        replace(cfg.scene, object_size=-1.0)
+
+
+def test_object_size_is_the_largest_objects_side_from_the_masks(two_boxes):
+    """Two separated boxes: the measured size is the larger box's largest side (its ground
+    truth in the dataset's frame), within a grid cell below and the visual hull's excess above."""
+    import trimesh
+
+    from holowarp.data import load_dataset
+    from holowarp.stages.objects import measure_object_size
+
+    sides = {n: float(np.ptp(trimesh.load(two_boxes / "objects" / n / "gt.obj", force="mesh").vertices, axis=0).max())
+             for n in ("red", "blue")}
+    size = measure_object_size(load_dataset(two_boxes, res=RES))
+    assert max(sides.values()) - 0.02 <= size <= max(sides.values()) + 0.06, (size, sides)
+    assert size < 0.6  # not the whole scene (largest side 1)
+
+
 # ---------------------------------------------------------------------------- clustering
 def _touching_blobs(rng):
     """A 4 x 1 x 1 bar of tets: the first unit (x < 1) is one red object, the other three
@@ -184,6 +244,14 @@ def test_two_separated_boxes_give_two_named_clean_objects(tiny_scene_run):
     assert report["components"] == 2 and read_tetmesh(out / "tetmesh.vtu").num_tets == sum(
         o["tets"] for o in scene["objects"])
     assert json.loads((out / "report.json").read_text())["scene"]["objects"] == scene["objects"]
+    # The run scaled its length-valued settings to the measured object size; the checkpoint
+    # keeps the caller's config, so --resume compares like with like.
+    from holowarp.runstate import Checkpoint
+
+    size = report["config"]["scene"]["object_size"]
+    assert 0.3 < size < 0.6
+    assert report["config"]["topology"]["kappa_clamp"][1] == pytest.approx(tiny_scene_config().topology.kappa_clamp[1] / size)
+    assert Checkpoint.load(out).config["scene"]["object_size"] is None
 
 
 def test_the_scene_usd_has_one_deformable_body_per_object(tiny_scene_run):
@@ -231,6 +299,12 @@ def test_scene_flags_need_scene_level_and_valid_values(tmp_path, capsys):
     assert main([str(tmp_path), "--out", str(tmp_path / "o"), "--scene-level", "--min-component", "0",
                  "--quiet"]) == 2
     assert "--min-component 0.0: must lie in (0, 1]" in capsys.readouterr().err
+    assert main([str(tmp_path), "--out", str(tmp_path / "o"), "--object-size", "0.5", "--quiet"]) == 2
+    assert "--object-size: only with --scene-level" in capsys.readouterr().err
+    assert main([str(tmp_path), "--out", str(tmp_path / "o"), "--scene-level", "--object-size", "0", "--quiet"]) == 2
+    assert "--object-size 0.0: must be a finite number > 0" in capsys.readouterr().err
+    cfg = config_from_args(build_parser().parse_args(["d", "--out", "o", "--scene-level", "--object-size", "0.4"]))
+    assert cfg.scene.object_size == 0.4 and cfg.topology.kappa_clamp == preset("fast").topology.kappa_clamp
     cfg = config_from_args(build_parser().parse_args(["d", "--out", "o", "--scene-level", "--min-component", "0.1",
                                                       "--objects", "3"]))
     assert (cfg.scene.enabled, cfg.scene.objects, cfg.topology.min_component, cfg.cleanup.min_component) == (

@@ -20,7 +20,7 @@ import numpy as np
 
 from holowarp.data.dataset import DatasetError
 
-__all__ = ["hull_sphere", "up_rotation", "mean_camera_up", "normalize_to_unit_sphere", "COARSE_GRID", "FINE_GRID"]
+__all__ = ["hull_nodes", "hull_sphere", "up_rotation", "mean_camera_up", "normalize_to_unit_sphere", "COARSE_GRID", "FINE_GRID"]
 
 #: Carving nodes per side of the coarse (look-region) and fine (hull-box) grids.
 COARSE_GRID = 48
@@ -36,9 +36,12 @@ def _grid(lo: np.ndarray, hi: np.ndarray, n: int) -> tuple[np.ndarray, float]:
     return np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1), h
 
 
-def hull_sphere(dataset, *, device: str = "cpu") -> tuple[np.ndarray, float]:
-    """Centre (3,) and radius of the bounding sphere of the visual hull of every view's mask,
-    in the dataset's world units (see the module docstring)."""
+def hull_nodes(dataset, *, device: str = "cpu") -> tuple[np.ndarray, np.ndarray, float]:
+    """The visual hull of every view's mask on a grid: the nodes (n^3, 3) of the
+    ``FINE_GRID``-node cube over the box a coarse carve of the look region found (see the
+    module docstring; node index ``(i * n + j) * n + k`` along x, y, z), which of them lie
+    inside (n^3,) bool, and the spacing, in the dataset's world units. A hull thinner than
+    the coarse cells marks every fine node inside."""
     from holowarp.carve import inside_hull, look_region
 
     views = np.arange(dataset.num_views)
@@ -49,9 +52,15 @@ def hull_sphere(dataset, *, device: str = "cpu") -> tuple[np.ndarray, float]:
         raise DatasetError(f"{dataset.root or dataset.name}: the masks carve away everything the cameras look at "
                            "(do the masks belong to their images, and the poses to this capture?)")
     pts, h = _grid(inside.min(0) - h, inside.max(0) + h, FINE_GRID)
-    inside = pts[inside_hull(dataset, pts, views, device=device)]
-    if len(inside) == 0:  # a hull thinner than the coarse cells: keep the coarse box
-        inside = pts
+    fine = inside_hull(dataset, pts, views, device=device)
+    return pts, (fine if fine.any() else np.ones(len(pts), dtype=bool)), h
+
+
+def hull_sphere(dataset, *, device: str = "cpu") -> tuple[np.ndarray, float]:
+    """Centre (3,) and radius of the bounding sphere of the visual hull of every view's mask,
+    in the dataset's world units (see the module docstring)."""
+    pts, inside, h = hull_nodes(dataset, device=device)
+    inside = pts[inside]
     c = 0.5 * (inside.min(0) + inside.max(0))
     r = float(np.linalg.norm(inside - c, axis=1).max()) + h * np.sqrt(3.0)
     return c, r
