@@ -812,8 +812,10 @@ class ReconConfig:
         frame units per step (multiplied by k). Everything else is already relative: the
         tet edge length to the hull's diagonal, L_eik and L_HC to the edge lengths, the
         step caps and surface bounds to the mean edge, stage 0 to the scene's extent.
-        Without this, a scene of objects 0.44 wide (spot, bob and a box) carved blurred,
-        dented surfaces: Chamfer-L1 5.9x spot's own reconstruction.
+        Measured with the fast preset: spot rendered alone in a world scaled by 0.4 (the
+        same images) ends at Chamfer-L1 0.0164 with the size-1 settings and 0.0032 with
+        these (0.0036 at size 1). In a scene of spot, bob and a box, spot went from 5.9x its
+        own run's Chamfer-L1 to 1.19x, and all three objects to their right genus.
         """
         if not (math.isfinite(size) and size > 0):
             raise ValueError(f"object size must be a finite number > 0, got {size!r}")

@@ -323,7 +323,7 @@ mesh = "{bob}"
 name = "bob"
 position = [1.5, 0.0, 0.0]
 [[objects]]
-box = [0.6, 0.6, 0.6]
+box = [1.0, 1.0, 1.0]
 name = "box"
 position = [0.75, 1.4, 0.0]
 color = [0.3, 0.55, 0.8]
@@ -335,6 +335,8 @@ GENUS = {"spot": 0, "bob": 1, "box": 0}
 SINGLE_RES = 128
 #: The scene is rendered this many times larger (and tetrahedralised this many times finer),
 #: so each object covers about as many pixels and tets as alone (the scene is ~2.5 objects wide).
+#: That holds because the three are the same size (largest side 1, synth's): the resolution
+#: is shared, so a smaller object gets fewer pixels and tets than alone, where it fills the frame.
 SCENE_ZOOM = 2.5
 
 
