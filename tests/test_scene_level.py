@@ -250,7 +250,8 @@ def test_two_separated_boxes_give_two_named_clean_objects(tiny_scene_run):
 
     size = report["config"]["scene"]["object_size"]
     assert 0.3 < size < 0.6
-    assert report["config"]["topology"]["kappa_clamp"][1] == pytest.approx(tiny_scene_config().topology.kappa_clamp[1] / size)
+    clamp = tiny_scene_config().topology.kappa_clamp[1]
+    assert report["config"]["topology"]["kappa_clamp"][1] == pytest.approx(clamp / size)
     assert Checkpoint.load(out).config["scene"]["object_size"] is None
 
 

@@ -20,7 +20,8 @@ import numpy as np
 
 from holowarp.data.dataset import DatasetError
 
-__all__ = ["hull_nodes", "hull_sphere", "up_rotation", "mean_camera_up", "normalize_to_unit_sphere", "COARSE_GRID", "FINE_GRID"]
+__all__ = ["hull_nodes", "hull_sphere", "up_rotation", "mean_camera_up", "normalize_to_unit_sphere", "COARSE_GRID",
+           "FINE_GRID"]
 
 #: Carving nodes per side of the coarse (look-region) and fine (hull-box) grids.
 COARSE_GRID = 48
