@@ -331,7 +331,8 @@ class TetInitConfig:
     Attributes:
         hull_scale: hull inflation about its centroid so it strictly covers the object (1.1).
         epsilon: fTetWild envelope relative to the bbox (1e-3).
-        edge_length_fac: fTetWild ideal edge length / bbox diagonal (the resolution knob).
+        edge_length_fac: fTetWild ideal edge length / bbox diagonal (the resolution knob); in
+            a scene run, / each object's own (:func:`holowarp.stages.tet_init.object_sizing`).
         min_opacity: stage-0 surfels below this opacity are dropped before the hull.
         min_points: fewer surviving centres than this is a degenerate hull.
     """
@@ -810,8 +811,9 @@ class ReconConfig:
         divided by k, phi's constant initial value and lr multiplied by k, and L_smooth's
         weight divided by k^2 (it is quadratic in phi). The mesh blocks' vertex lr is in
         frame units per step (multiplied by k). Everything else is already relative: the
-        tet edge length to the hull's diagonal, L_eik and L_HC to the edge lengths, the
-        step caps and surface bounds to the mean edge, stage 0 to the scene's extent.
+        tet edge length to each object's diagonal (a scene run sizes the tets per object),
+        L_eik and L_HC to the edge lengths, the step caps and surface bounds to the mean
+        edge, stage 0 to the scene's extent.
         Measured with the fast preset: spot rendered alone in a world scaled by 0.4 (the
         same images) ends at Chamfer-L1 0.0164 with the size-1 settings and 0.0032 with
         these (0.0036 at size 1). In a scene of spot, bob and a box, spot went from 5.9x its

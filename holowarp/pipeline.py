@@ -132,10 +132,15 @@ class _Run:
         self.state.stage0 = {k: res[k] for k in ("psnr_test", "gaussians", "iters")}
 
     def tet_init(self):
+        pieces = None
+        if self.cfg.scene.enabled:
+            from holowarp.stages.objects import hull_pieces
+
+            pieces = hull_pieces(self.ds, device=str(self.device))
         with self.state.timed("tet_init"):
             self.model = init_model_from_surfels(self.out / "stage0" / "gaussians.ply", self.ds, self.cfg.tet_init,
                                                  self.cfg.topology, seed=self.cfg.seed, device=self.device,
-                                                 progress=self.progress)
+                                                 progress=self.progress, pieces=pieces)
         self.state.tets_initial, self.state.vertices_initial = self.model.num_tets, self.model.num_vertices
 
     def _rebuild_optimizers(self, saved: dict | None = None, *, learn_scales: bool):

@@ -108,13 +108,85 @@ def test_object_size_is_the_largest_objects_side_from_the_masks(two_boxes):
     import trimesh
 
     from holowarp.data import load_dataset
-    from holowarp.stages.objects import measure_object_size
+    from holowarp.stages.objects import hull_pieces, measure_object_size
 
     sides = {n: float(np.ptp(trimesh.load(two_boxes / "objects" / n / "gt.obj", force="mesh").vertices, axis=0).max())
              for n in ("red", "blue")}
-    size = measure_object_size(load_dataset(two_boxes, res=RES))
+    ds = load_dataset(two_boxes, res=RES)
+    size = measure_object_size(ds)
     assert max(sides.values()) - 0.02 <= size <= max(sides.values()) + 0.06, (size, sides)
     assert size < 0.6  # not the whole scene (largest side 1)
+    # hull_pieces: one box per object, each holding its ground truth's (less a grid cell)
+    # and not much more.
+    pieces = hull_pieces(ds)
+    assert len(pieces) == 2
+    gts = [trimesh.load(two_boxes / "objects" / n / "gt.obj", force="mesh").vertices for n in sides]
+    for lo, hi in pieces:
+        v = min(gts, key=lambda g: np.linalg.norm(g.mean(0) - 0.5 * (lo + hi)))
+        assert np.all(lo <= v.min(0) + 0.02) and np.all(hi >= v.max(0) - 0.02), (n, lo, hi, v.min(0), v.max(0))
+        assert np.all(lo >= v.min(0) - 0.08) and np.all(hi <= v.max(0) + 0.08), (n, lo, hi, v.min(0), v.max(0))
+
+
+def _cube_pieces():
+    """Two separated cubes, sides 1 and 0.5: their boxes and their corners."""
+    import trimesh
+
+    big, small = trimesh.creation.box((1.0, 1.0, 1.0)), trimesh.creation.box((0.5, 0.5, 0.5))
+    small.apply_translation((2.0, 0.3, 0.0))
+    return [(m.bounds[0], m.bounds[1]) for m in (big, small)], np.concatenate([big.vertices, small.vertices])
+
+
+def test_object_sizing_gives_each_object_its_own_edge_length():
+    """Oracle: a node in or near an object's box has ``SIZING_GAIN * fac * hull_scale *``
+    its box diagonal, a node far from both the larger of those and ``fac`` x the diagonal of
+    the box asked for; the grid covers that box, with positive tets."""
+    from holowarp.stages.tet_init import SIZING_GAIN, SIZING_MARGIN, object_sizing
+
+    pieces, pts = _cube_pieces()
+    lo, hi = pts.min(0) - 0.3, pts.max(0) + 0.3
+    X, T, val = object_sizing(pieces, lo, hi, edge_length_fac=0.04, hull_scale=1.1, cells=20)
+    assert np.all(X.min(0) <= lo) and np.all(X.max(0) >= hi)
+    e = X[T]
+    assert np.all(np.einsum("ij,ij->i", np.cross(e[:, 1] - e[:, 0], e[:, 2] - e[:, 0]), e[:, 3] - e[:, 0]) > 0)
+    edge = [SIZING_GAIN * 0.04 * 1.1 * np.sqrt(3) * side for side in (1.0, 0.5)]
+    step = (hi - lo).max() / 20
+    for i, (plo, phi) in enumerate(pieces):
+        d = np.linalg.norm(np.maximum(plo - X, 0) + np.maximum(X - phi, 0), axis=1)
+        assert np.allclose(val[d == 0], edge[i]) and (d == 0).sum() >= 8
+        assert np.allclose(val[(d > 0) & (d <= SIZING_MARGIN * step * 0.99)], edge[i])
+    far = np.all([np.linalg.norm(np.maximum(a - X, 0) + np.maximum(X - b, 0), axis=1) > SIZING_MARGIN * step * 1.01
+                  for a, b in pieces], axis=0)
+    assert far.sum() > 0 and np.allclose(val[far], 0.04 * np.linalg.norm(hi - lo))  # longer than the objects'
+    X, T, val = object_sizing(pieces, pieces[0][0], pieces[0][1], edge_length_fac=0.2, hull_scale=2.0, cells=20)
+    assert np.isclose(val.max(), SIZING_GAIN * 0.2 * 2.0 * np.sqrt(3))  # here the big cube's is longer
+    with pytest.raises(ValueError, match="no objects"):
+        object_sizing([], lo, hi, edge_length_fac=0.04)
+
+
+def test_initial_tetmesh_meshes_each_object_as_finely_as_alone():
+    """fTetWild with the sizing field: inside each cube of a two-cube scene the mean tet
+    edge is within 15% of the cube's own when tetrahedralised alone (one convex hull each),
+    where one edge length for the whole scene would give the small cube about twice its own."""
+    from holowarp.config import TetInitConfig
+    from holowarp.stages.tet_init import initial_tetmesh
+
+    pieces, pts = _cube_pieces()
+    cfg = TetInitConfig(edge_length_fac=0.05, min_points=8)
+
+    def mean_edge(mesh, lo, hi):
+        c = mesh.vertices[mesh.tets].mean(axis=1)
+        t = mesh.tets[np.all((c > lo) & (c < hi), axis=1)]
+        e = np.concatenate([t[:, [i, j]] for i in range(4) for j in range(i + 1, 4)])
+        return np.linalg.norm(mesh.vertices[e[:, 0]] - mesh.vertices[e[:, 1]], axis=1).mean()
+
+    scene = initial_tetmesh(pts, config=cfg, pieces=pieces)
+    for i, (lo, hi) in enumerate(pieces):
+        alone = initial_tetmesh(pts[8 * i:8 * i + 8], config=cfg)
+        ratio = mean_edge(scene, lo, hi) / mean_edge(alone, lo, hi)
+        assert 0.85 <= ratio <= 1.15, (i, ratio)
+    # One edge length for the scene: fac x the hull's diagonal, twice the small cube's here.
+    hull = 1.1 * np.linalg.norm(np.ptp(pts, axis=0))
+    assert mean_edge(scene, *pieces[1]) < 0.6 * 0.05 * hull
 
 
 # ---------------------------------------------------------------------------- clustering
@@ -334,10 +406,11 @@ color = [0.3, 0.55, 0.8]
 GENUS = {"spot": 0, "bob": 1, "box": 0}
 #: Image side (px) of the single-object runs: the fast preset's.
 SINGLE_RES = 128
-#: The scene is rendered this many times larger (and tetrahedralised this many times finer),
-#: so each object covers about as many pixels and tets as alone (the scene is ~2.5 objects wide).
-#: That holds because the three are the same size (largest side 1, synth's): the resolution
-#: is shared, so a smaller object gets fewer pixels and tets than alone, where it fills the frame.
+#: The scene is rendered this many times larger, so each object covers about as many pixels
+#: as alone (the scene is ~2.5 objects wide). That holds because the three are the same size
+#: (largest side 1, synth's): the resolution is shared, so a smaller object gets fewer pixels
+#: than alone, where it fills the frame. Tets need no such factor: a scene run meshes each
+#: object at the edge length it has alone (holowarp.stages.tet_init.object_sizing).
 SCENE_ZOOM = 2.5
 
 
@@ -360,9 +433,8 @@ def test_three_separated_objects_match_their_single_object_reconstructions(tmp_p
     res = int(round(SINGLE_RES * SCENE_ZOOM))
     synthesize_scene(tmp_path / "three.toml", tmp_path / "scene", res=res, progress=False)
     cfg = preset("fast")
-    scfg = replace(cfg, resolution=res, tet_init=replace(cfg.tet_init,
-                                                         edge_length_fac=cfg.tet_init.edge_length_fac / SCENE_ZOOM))
-    report = reconstruct(tmp_path / "scene", tmp_path / "scene_run", config=scfg.scene_level(), progress=False)
+    report = reconstruct(tmp_path / "scene", tmp_path / "scene_run", config=replace(cfg, resolution=res).scene_level(),
+                         progress=False)
     objects = {o["name"]: o for o in report["scene"]["objects"]}
     assert sorted(objects) == sorted(GENUS)
     for name, genus in GENUS.items():

@@ -43,11 +43,11 @@ from holowarp.config import SceneConfig
 from holowarp.manifold import repair_manifold
 from holowarp.tetmesh import TetMesh
 
-__all__ = ["cluster_split", "assign_objects", "dataset_objects", "measure_object_size", "name_objects", "write_scene",
-           "scene_toml"]
+__all__ = ["cluster_split", "assign_objects", "dataset_objects", "hull_pieces", "measure_object_size", "name_objects",
+           "write_scene", "scene_toml"]
 
 #: Hull pieces with fewer grid nodes than this fraction of the hull's are ignored by
-#: :func:`measure_object_size` (specks a stray mask pixel leaves).
+#: :func:`hull_pieces` (specks a stray mask pixel leaves).
 MIN_PIECE_FRACTION = 0.01
 
 
@@ -208,15 +208,14 @@ def _manifold_piece(mesh: TetMesh, ids: np.ndarray) -> np.ndarray:
     return ids[lab == np.argmax(np.bincount(lab))] if n > 1 else ids
 
 
-def measure_object_size(dataset, *, device: str = "cpu") -> float:
-    """Largest side of the largest object of a capture, in its world units: the masks'
-    visual hull on a grid (:func:`holowarp.data.normalize.hull_nodes`), split into
-    6-connected pieces (SciPy's ``ndimage.label``); the largest bounding-box side of any
-    piece with at least :data:`MIN_PIECE_FRACTION` of the hull's nodes, plus one grid
-    cell (the hull's boundary lies within a cell beyond its outermost nodes; spot in the
-    three-object test scene: 0.433 against its ground truth's 0.440). Objects that touch, or
-    whose hulls merge, count as one, so the size errs towards the larger (the single-object
-    settings). Sets :attr:`holowarp.config.SceneConfig.object_size` of a scene run."""
+def hull_pieces(dataset, *, device: str = "cpu") -> list[tuple[np.ndarray, np.ndarray]]:
+    """The objects of a capture as its masks see them: the visual hull on a grid
+    (:func:`holowarp.data.normalize.hull_nodes`) split into 6-connected pieces (SciPy's
+    ``ndimage.label``), each piece with at least :data:`MIN_PIECE_FRACTION` of the hull's
+    nodes as its bounding box ``(lo (3,), hi (3,))`` in world units, grown by half a grid
+    cell on every side (the hull's boundary lies within a cell beyond its outermost nodes;
+    spot in the three-object test scene: largest side 0.433 against its ground truth's
+    0.440). Largest piece first. Objects that touch, or whose hulls merge, are one piece."""
     from scipy import ndimage
 
     from holowarp.data.normalize import FINE_GRID, hull_nodes
@@ -226,13 +225,22 @@ def measure_object_size(dataset, *, device: str = "cpu") -> float:
     labels, count = ndimage.label(inside.reshape(n, n, n))
     labels = labels.ravel()
     sizes = np.bincount(labels, minlength=count + 1)
-    best = 0.0
-    for lab in np.flatnonzero(sizes >= MIN_PIECE_FRACTION * inside.sum()):
-        if lab == 0:
-            continue
+    sizes[0] = 0
+    pieces = []
+    for lab in np.argsort(-sizes, kind="stable"):
+        if sizes[lab] < max(1, MIN_PIECE_FRACTION * inside.sum()):
+            break
         p = pts[labels == lab]
-        best = max(best, float((p.max(0) - p.min(0)).max()) + h)
-    return best
+        pieces.append((p.min(0) - 0.5 * h, p.max(0) + 0.5 * h))
+    return pieces
+
+
+def measure_object_size(dataset, *, device: str = "cpu") -> float:
+    """Largest side of the largest object of a capture, in its world units: the largest
+    bounding-box side of any of its :func:`hull_pieces`. Objects that touch, or whose hulls
+    merge, count as one, so the size errs towards the larger (the single-object settings).
+    Sets :attr:`holowarp.config.SceneConfig.object_size` of a scene run."""
+    return max(float((hi - lo).max()) for lo, hi in hull_pieces(dataset, device=device))
 
 
 def dataset_objects(data_dir) -> dict:

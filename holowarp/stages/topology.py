@@ -174,18 +174,20 @@ def init_model(mesh: TetMesh, dataset, views, config: TopologyConfig, *, seed: i
 
 
 def init_model_from_surfels(gaussians_ply, dataset, tet_config, config: TopologyConfig, *, seed: int = 0,
-                            device="cpu", progress: bool = True) -> TetGaussians:
+                            device="cpu", progress: bool = True, pieces=None) -> TetGaussians:
     """§4 then the start of §5: the scaled convex hull of the stage-0 surfels in
-    ``gaussians_ply``, tetrahedralised with fTetWild (:func:`holowarp.stages.tet_init.initial_tetmesh`),
+    ``gaussians_ply``, tetrahedralised with fTetWild (:func:`holowarp.stages.tet_init.initial_tetmesh`;
+    ``pieces``: a scene's objects' bounding boxes, each meshed at its own edge length),
     and its model (:func:`init_model`) on the training views."""
     from holowarp.gaussians import load_gaussians_ply
     from holowarp.progress import say
     from holowarp.stages.tet_init import initial_tetmesh
 
     say(f"tetrahedralising the {tet_config.hull_scale}x convex hull of the stage-0 surfels with fTetWild "
-        f"(edge length {tet_config.edge_length_fac} x bbox diagonal)", progress)
+        f"(edge length {tet_config.edge_length_fac} x bbox diagonal"
+        f"{f' of each of the {len(pieces)} objects' if pieces else ''})", progress)
     g = load_gaussians_ply(gaussians_ply)
-    mesh = initial_tetmesh(g["means"], g["opacities"], tet_config)
+    mesh = initial_tetmesh(g["means"], g["opacities"], tet_config, pieces=pieces)
     say(f"initial tet mesh: {mesh.num_tets} tets, {mesh.num_vertices} vertices", progress)
     maps = None
     if config.phi_init == "depth_hull":
