@@ -556,6 +556,23 @@ def decimate_surface(vertices, faces, max_faces: int) -> tuple[np.ndarray, np.nd
     return np.asarray(out.points, dtype=np.float64), np.asarray(out.faces).reshape(-1, 4)[:, 1:].astype(np.int32)
 
 
+def _in_scratch_folder(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` run in a temporary working folder: fTetWild drops a debug file
+    (__tracked_surface.stl) into the working folder, and users' folders stay clean."""
+    import contextlib
+    import os
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="holowarp-tetwild-") as scratch:
+        cwd = os.getcwd()
+        os.chdir(scratch)
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            with contextlib.suppress(OSError):
+                os.chdir(cwd)
+
+
 def tetrahedralize_surface(
     vertices,
     faces,
@@ -610,30 +627,9 @@ def tetrahedralize_surface(
         # Fresh writable copies: the binding refuses read-only arrays (TetMesh's are).
         bg = dict(bg_vertices=np.array(bv, dtype=np.float64, order="C"),
                   bg_tets=np.array(bt, dtype=np.int32, order="C"), bg_values=np.array(bs, dtype=np.float64, order="C"))
-    # fTetWild drops a debug file (__tracked_surface.stl) into the working folder; run it in
-    # a scratch folder so users' folders stay clean.
-    import contextlib
-    import os
-    import tempfile
-
-    with tempfile.TemporaryDirectory(prefix="holowarp-tetwild-") as scratch:
-        cwd = os.getcwd()
-        os.chdir(scratch)
-        try:
-            tv, tt = pytetwild.tetrahedralize(
-                v,
-                f,
-                edge_length_fac=edge_length_fac,
-                edge_length_abs=edge_length_abs,
-                optimize=optimize,
-                epsilon=epsilon,
-                num_threads=num_threads,
-                quiet=True,
-                **bg,
-            )
-        finally:
-            with contextlib.suppress(OSError):
-                os.chdir(cwd)
+    tv, tt = _in_scratch_folder(pytetwild.tetrahedralize, v, f, edge_length_fac=edge_length_fac,
+                                edge_length_abs=edge_length_abs, optimize=optimize, epsilon=epsilon,
+                                num_threads=num_threads, quiet=True, **bg)
     if tt is None or len(tt) == 0:
         raise TetMeshError("tetrahedralize_surface: fTetWild produced no tetrahedra")
     mesh, _ = TetMesh(tv, tt).oriented()
