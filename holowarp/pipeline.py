@@ -57,8 +57,9 @@ def reconstruct(dataset_path=None, out_dir="runs/holowarp", *, config: ReconConf
     check_resume(out_dir, ckpt, config.to_dict(), dataset_path, resume=resume)
     dataset, data_dir = prepare_dataset(dataset_path, out_dir, config, device=device, progress=progress,
                                         resuming=ckpt is not None)
-    run = _Run(dataset, data_dir, dataset_path, out_dir, _run_config(config, dataset, device, progress), device,
-               progress, ckpt, checkpoint_config=config)
+    run_config, pieces = _run_config(config, dataset, device, progress)
+    run = _Run(dataset, data_dir, dataset_path, out_dir, run_config, device, progress, ckpt, checkpoint_config=config,
+               pieces=pieces)
     try:
         report = run.execute()
     finally:
@@ -70,32 +71,38 @@ def reconstruct(dataset_path=None, out_dir="runs/holowarp", *, config: ReconConf
     return report
 
 
-def _run_config(config: ReconConfig, dataset, device: str, progress: bool) -> ReconConfig:
-    """The config a run uses: ``config`` itself for one object; for a scene, its
-    length-valued settings at the scene's object size (:meth:`ReconConfig.at_object_size`,
-    measured from the masks unless ``scene.object_size`` gives it). Derived again on resume
-    (the same masks give the same size); checkpoints keep ``config``."""
+def _run_config(config: ReconConfig, dataset, device: str, progress: bool) -> tuple[ReconConfig, list | None]:
+    """The config a run uses, and a scene's objects as the masks see them.
+
+    One object: ``(config, None)``. A scene: its length-valued settings at the scene's
+    object size (:meth:`ReconConfig.at_object_size`, measured from the masks' hull pieces
+    unless ``scene.object_size`` gives it), and those pieces
+    (:func:`holowarp.stages.objects.hull_pieces`, which size the initial tets per object).
+    Derived again on resume (the same masks give the same pieces); checkpoints keep ``config``."""
     if not config.scene.enabled:
-        return config
+        return config, None
+    from holowarp.stages.objects import hull_pieces, largest_side
+
+    pieces = hull_pieces(dataset, device=device)
     size = config.scene.object_size
     if size is None:
-        from holowarp.stages.objects import measure_object_size
-
-        size = measure_object_size(dataset, device=device)
+        size = largest_side(pieces)
     say(f"scene level: the largest object is {size:.3f} frame units wide; length-valued settings scaled to it",
         progress)
-    return config.at_object_size(size)
+    return config.at_object_size(size), pieces
 
 
 class _Run:
     """One reconstruction: its typed state, model and optimisers; a handler per phase and event."""
 
     def __init__(self, dataset, data_dir, dataset_path, out_dir, config, device, progress, ckpt, *,
-                 checkpoint_config=None):
+                 checkpoint_config=None, pieces=None):
         self.ds, self.data_dir, self.dataset_path, self.out = dataset, Path(data_dir), dataset_path, Path(out_dir)
         self.cfg, self.device, self.progress = config, torch.device(device), progress
         # What --resume compares against: the caller's config, before _run_config derives from it.
         self.checkpoint_cfg = config if checkpoint_config is None else checkpoint_config
+        # A scene's objects as bounding boxes (hull_pieces): the initial tets are sized per object.
+        self.pieces = pieces
         self.state = ckpt.state if ckpt is not None else RunState()
         self.seconds_before, self._t0 = self.state.elapsed, time.perf_counter()
         self.ckpt, self.model, self.opts, self.evidence = ckpt, None, None, None
@@ -132,15 +139,10 @@ class _Run:
         self.state.stage0 = {k: res[k] for k in ("psnr_test", "gaussians", "iters")}
 
     def tet_init(self):
-        pieces = None
-        if self.cfg.scene.enabled:
-            from holowarp.stages.objects import hull_pieces
-
-            pieces = hull_pieces(self.ds, device=str(self.device))
         with self.state.timed("tet_init"):
             self.model = init_model_from_surfels(self.out / "stage0" / "gaussians.ply", self.ds, self.cfg.tet_init,
                                                  self.cfg.topology, seed=self.cfg.seed, device=self.device,
-                                                 progress=self.progress, pieces=pieces)
+                                                 progress=self.progress, pieces=self.pieces)
         self.state.tets_initial, self.state.vertices_initial = self.model.num_tets, self.model.num_vertices
 
     def _rebuild_optimizers(self, saved: dict | None = None, *, learn_scales: bool):

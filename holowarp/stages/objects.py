@@ -43,8 +43,8 @@ from holowarp.config import SceneConfig
 from holowarp.manifold import repair_manifold
 from holowarp.tetmesh import TetMesh
 
-__all__ = ["cluster_split", "assign_objects", "dataset_objects", "hull_pieces", "measure_object_size", "name_objects",
-           "write_scene", "scene_toml"]
+__all__ = ["cluster_split", "assign_objects", "dataset_objects", "hull_pieces", "largest_side", "measure_object_size",
+           "name_objects", "write_scene", "scene_toml"]
 
 #: Hull pieces with fewer grid nodes than this fraction of the hull's are ignored by
 #: :func:`hull_pieces` (specks a stray mask pixel leaves).
@@ -235,12 +235,17 @@ def hull_pieces(dataset, *, device: str = "cpu") -> list[tuple[np.ndarray, np.nd
     return pieces
 
 
+def largest_side(pieces) -> float:
+    """Largest bounding-box side of any of ``pieces`` (:func:`hull_pieces`)."""
+    return max(float((hi - lo).max()) for lo, hi in pieces)
+
+
 def measure_object_size(dataset, *, device: str = "cpu") -> float:
-    """Largest side of the largest object of a capture, in its world units: the largest
-    bounding-box side of any of its :func:`hull_pieces`. Objects that touch, or whose hulls
+    """Largest side of the largest object of a capture, in its world units: the
+    :func:`largest_side` of its :func:`hull_pieces`. Objects that touch, or whose hulls
     merge, count as one, so the size errs towards the larger (the single-object settings).
     Sets :attr:`holowarp.config.SceneConfig.object_size` of a scene run."""
-    return max(float((hi - lo).max()) for lo, hi in hull_pieces(dataset, device=device))
+    return largest_side(hull_pieces(dataset, device=device))
 
 
 def dataset_objects(data_dir) -> dict:

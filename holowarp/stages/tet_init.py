@@ -99,15 +99,15 @@ def object_sizing(pieces, lo, hi, *, edge_length_fac: float, hull_scale: float =
 
     if len(pieces) == 0:
         raise ValueError("object_sizing: no objects")
-    plo = np.asarray([p[0] for p in pieces], dtype=np.float64).reshape(-1, 3)
-    phi = np.asarray([p[1] for p in pieces], dtype=np.float64).reshape(-1, 3)
-    edge = SIZING_GAIN * edge_length_fac * hull_scale * np.linalg.norm(phi - plo, axis=1)
+    box_lo = np.asarray([p[0] for p in pieces], dtype=np.float64).reshape(-1, 3)
+    box_hi = np.asarray([p[1] for p in pieces], dtype=np.float64).reshape(-1, 3)
+    edge = SIZING_GAIN * edge_length_fac * hull_scale * np.linalg.norm(box_hi - box_lo, axis=1)
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     step = float((hi - lo).max()) / cells
     n = np.maximum(1, np.ceil((hi - lo) / step).astype(int)) + 2
     grid = box_tetmesh(tuple(n), tuple(n * step), tuple(0.5 * (lo + hi) - 0.5 * n * step))
     X = grid.vertices
-    gap = np.maximum(plo[None] - X[:, None], 0.0) + np.maximum(X[:, None] - phi[None], 0.0)  # (B, K, 3)
+    gap = np.maximum(box_lo[None] - X[:, None], 0.0) + np.maximum(X[:, None] - box_hi[None], 0.0)  # (B, K, 3)
     dist = np.linalg.norm(gap, axis=2)
     nearest = np.argmin(dist, axis=1)
     # Empty space between the objects is carved away: mesh it no finer than the coarsest
