@@ -577,8 +577,6 @@ class SceneConfig:
             the unit frame (size 1, method.md §1); a scene's frame holds several objects, so
             each is smaller. ``None``: measured from the masks' visual hull
             (:func:`holowarp.stages.objects.measure_object_size`).
-        balance: the scene's loss-weight factor ``s`` (:meth:`ReconConfig.with_scene_balance`);
-            set by the run from the masks, ``None`` before.
     """
 
     enabled: bool = False
@@ -590,7 +588,6 @@ class SceneConfig:
     sim_size: float = 0.1
     sim_drop: float = 0.05
     object_size: float | None = None
-    balance: float | None = None
 
     def __post_init__(self):
         _check_min_component(self.min_component, "SceneConfig")
@@ -832,40 +829,6 @@ class ReconConfig:
                              phi_inside=t.phi_inside * k, phi_lr=t.phi_lr * k, lam_smooth=t.lam_smooth / k ** 2),
             geometry=replace(g, lr_start=g.lr_start * k, lr_end=g.lr_end * k),
             scene=replace(self.scene, object_size=k),
-        )
-
-    def with_scene_balance(self, sides) -> "ReconConfig":
-        """The same config with the loss terms weighted so each object of a scene sees the
-        balance between image and regularisers it has alone (``scene.balance`` records ``s``).
-
-        ``sides``: the largest side of each object, in frame units (the masks' hull pieces,
-        :func:`holowarp.stages.objects.hull_pieces`). An object of side k covers k^2 of the
-        pixels a size-1 object covers, so its share of a term averaged over all pixels
-        (L_rgb, L_mask) shrinks with k^2; terms averaged over the covered pixels (the normal
-        terms) or over the tet edges (L_eik, L_smooth; each object has its own tets) give it
-        about 1/n instead, and the sums over tets or boundary vertices (L_HC, L_w, the
-        orientation barrier; scale-free, so their gradient grows as 1/k) k^-2 more than the
-        per-pixel mean's. With ``s = sum k_i^2`` (n k^2 for n objects of side k): the
-        covered-pixel and edge terms are multiplied by ``s``, and the sums by ``s / n``.
-        Adam steps are invariant to one common factor, so scaling the pixel means instead
-        would be the same run. One object of side 1 gives ``s = 1``: the config unchanged.
-        Measured on spot, bob and a box (the slow scene test): without it the box ended at
-        1.53x its own run's Chamfer-L1, with broad dents in its faces that the single box
-        also shows when L_eik and L_smooth are doubled.
-        """
-        sides = [float(k) for k in sides]
-        if not sides or not all(math.isfinite(k) and k > 0 for k in sides):
-            raise ValueError(f"object sides must be finite numbers > 0, got {sides!r}")
-        s = sum(k * k for k in sides)
-        a = s / len(sides)
-        t, g = self.topology, self.geometry
-        return replace(
-            self,
-            topology=replace(t, w_normal=t.w_normal * s, w_prior=t.w_prior * s, lam_eik=t.lam_eik * s,
-                             lam_smooth=t.lam_smooth * s),
-            geometry=replace(g, w_norm=g.w_norm * s, w_prior=g.w_prior * s, c_hc=g.c_hc * a, c_w=g.c_w * a,
-                             c_barrier=g.c_barrier * a),
-            scene=replace(self.scene, balance=s),
         )
 
     def to_dict(self) -> dict:

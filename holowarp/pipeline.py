@@ -76,8 +76,7 @@ def _run_config(config: ReconConfig, dataset, device: str, progress: bool) -> tu
 
     One object: ``(config, None)``. A scene: its length-valued settings at the scene's
     object size (:meth:`ReconConfig.at_object_size`, measured from the masks' hull pieces
-    unless ``scene.object_size`` gives it) with its loss terms balanced per object
-    (:meth:`ReconConfig.with_scene_balance`), and those pieces
+    unless ``scene.object_size`` gives it), and those pieces
     (:func:`holowarp.stages.objects.hull_pieces`, which size the initial tets per object).
     Derived again on resume (the same masks give the same pieces); checkpoints keep ``config``."""
     if not config.scene.enabled:
@@ -88,10 +87,9 @@ def _run_config(config: ReconConfig, dataset, device: str, progress: bool) -> tu
     size = config.scene.object_size
     if size is None:
         size = largest_side(pieces)
-    run_config = config.at_object_size(size).with_scene_balance([float((hi - lo).max()) for lo, hi in pieces])
-    say(f"scene level: the largest object is {size:.3f} frame units wide; length-valued settings scaled to it, "
-        f"loss balance {run_config.scene.balance:.3f} over {len(pieces)} pieces", progress)
-    return run_config, pieces
+    say(f"scene level: the largest object is {size:.3f} frame units wide; length-valued settings scaled to it",
+        progress)
+    return config.at_object_size(size), pieces
 
 
 class _Run:

@@ -342,57 +342,6 @@ def test_geometry_block_fits_silhouettes_without_inverting_tets(sphere_scene):
     assert model.mesh().volume() == pytest.approx(ball, rel=0.2)
 
 
-def _scaled_capture(ds, k: float, pad: int) -> Dataset:
-    """``ds`` with the world scaled by ``k`` about the origin and ``pad`` empty pixels on every
-    side: an object k times smaller in a frame it shares with others (method.md §11). With
-    ``k = res / (res + 2 pad)`` it covers the same pixels as in ``ds``, as a scene rendered
-    at res / k shows each object."""
-    vm = ds.viewmats.copy()
-    vm[:, :3, 3] *= k
-    K = ds.K.copy()
-    K[:, :2, 2] += pad
-    widths = ((0, 0), (pad, pad), (pad, pad))
-    return Dataset(images=np.pad(ds.images, widths + ((0, 0),), constant_values=1.0),
-                   masks=np.pad(ds.masks, widths), K=K, viewmats=vm, train_idx=ds.train_idx, test_idx=ds.test_idx,
-                   normals=np.pad(ds.normals, widths + ((0, 0),)), name=f"{ds.name} x{k}")
-
-
-@pytest.mark.parametrize("balanced", [True, False])
-def test_scene_balance_gives_a_smaller_object_the_steps_it_takes_alone(sphere_scene, balanced):
-    """Mesh-block steps on the sphere k = 0.4 times smaller, seen in images with 6.25x the
-    pixels (each object of a scene at 2.5x the resolution), under
-    ``at_object_size(k).with_scene_balance([k])`` are the steps alone scaled by k: the mask
-    term (a mean over all pixels) weighs k^2 less and the normal and HC/L_w/barrier terms are
-    scaled to match. Without the balance the regularisers win and the steps differ."""
-    from holowarp.config import ReconConfig
-    from holowarp.stages.geometry import GeometryBlock
-
-    ds, _ = sphere_scene
-    k, pad = 0.4, 30  # 40 px -> 100 px
-    base = ReconConfig(geometry=GeometryConfig(lr_start=4e-3, lr_end=2e-3, w_prior=0.5))
-    scene = base.at_object_size(k)
-    if balanced:
-        scene = scene.with_scene_balance([k])
-        assert scene.scene.balance == pytest.approx(k * k)
-        assert scene.geometry.c_hc == pytest.approx(base.geometry.c_hc * k * k)
-    carved = _grid_carved_model(ds, 8).mesh()
-    ends = []
-    for c, d, m in ((base, ds, carved), (scene, _scaled_capture(ds, k, pad), carved.with_vertices(carved.vertices * k))):
-        model = TetGaussians(m, free_opacity=True)
-        blk = GeometryBlock(model, d, d.train_idx, c.geometry, block_iters=6, total_mesh_iters=6)
-        for i in range(6):
-            blk.step(i, i, seed=5)
-        ends.append(blk.x.detach().numpy().astype(np.float64) - m.vertices)
-    alone, small = ends
-    moved = np.linalg.norm(alone, axis=1)
-    assert moved.max() > 0.02 * RADIUS  # the steps did something
-    err = np.linalg.norm(small / k - alone, axis=1).max() / moved.max()
-    if balanced:
-        assert err < 1e-3, err
-    else:
-        assert err > 0.2, err
-
-
 def test_normal_prior_in_geometry_blocks_matches_a_numpy_cosine_and_is_logged(sphere_scene):
     from holowarp.ops import rasterize_mesh
     from holowarp.stages.geometry import GeometryBlock
