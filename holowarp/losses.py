@@ -44,6 +44,35 @@ def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (alpha - mask).abs().mean()
 
 
+def depth_to_points(depth: torch.Tensor, K: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
+    """World points [H, W, 3] of a camera-z depth map [H, W]: each pixel centre unprojected
+    to ``z K^-1 (x + 0.5, y + 0.5, 1)`` (skew ``K[0, 1]`` included), then moved to world
+    coordinates by the world-to-camera ``viewmat`` [4, 4]."""
+    h, w = depth.shape
+    K = K.to(depth)
+    viewmat = viewmat.to(depth)
+    ys, xs = torch.meshgrid(
+        torch.arange(h, dtype=depth.dtype, device=depth.device) + 0.5,
+        torch.arange(w, dtype=depth.dtype, device=depth.device) + 0.5,
+        indexing="ij",
+    )
+    y_cam = (ys - K[1, 2]) / K[1, 1]
+    x_cam = (xs - K[0, 2] - K[0, 1] * y_cam) / K[0, 0]
+    pts_cam = torch.stack([x_cam, y_cam, torch.ones_like(xs)], dim=-1) * depth[..., None]
+    R = viewmat[:3, :3]
+    t = viewmat[:3, 3]
+    return (pts_cam - t) @ R  # R^T (p - t)
+
+
+def nearest_box(points: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    """Index (int64, ``points``' shape without the last axis) of the axis-aligned box nearest
+    each point [..., 3]; ``boxes`` (P, 2, 3) as ``(lo, hi)`` rows. A point inside a box is at
+    distance 0 from it (the first such box wins)."""
+    p = points[..., None, :]
+    gap = (boxes[:, 0] - p).clamp_min(0) + (p - boxes[:, 1]).clamp_min(0)
+    return (gap * gap).sum(-1).argmin(-1)
+
+
 def depth_to_normal(depth: torch.Tensor, K: torch.Tensor, viewmat: torch.Tensor) -> torch.Tensor:
     """World-space unit normals of the surface described by a camera-z depth map.
 
@@ -61,19 +90,7 @@ def depth_to_normal(depth: torch.Tensor, K: torch.Tensor, viewmat: torch.Tensor)
         normals [H, W, 3] in world coordinates.
     """
     h, w = depth.shape
-    K = K.to(depth)
-    viewmat = viewmat.to(depth)
-    ys, xs = torch.meshgrid(
-        torch.arange(h, dtype=depth.dtype, device=depth.device) + 0.5,
-        torch.arange(w, dtype=depth.dtype, device=depth.device) + 0.5,
-        indexing="ij",
-    )
-    y_cam = (ys - K[1, 2]) / K[1, 1]
-    x_cam = (xs - K[0, 2] - K[0, 1] * y_cam) / K[0, 0]
-    pts_cam = torch.stack([x_cam, y_cam, torch.ones_like(xs)], dim=-1) * depth[..., None]
-    R = viewmat[:3, :3]
-    t = viewmat[:3, 3]
-    pts = (pts_cam - t) @ R  # R^T (p - t)
+    pts = depth_to_points(depth, K, viewmat)
     d_dy = pts[2:, 1:-1] - pts[:-2, 1:-1]
     d_dx = pts[1:-1, 2:] - pts[1:-1, :-2]
     n = torch.linalg.cross(d_dy, d_dx, dim=-1)  # faces the camera for OpenCV axes
@@ -106,15 +123,23 @@ def distortion_loss(distortion: torch.Tensor, *, weight: torch.Tensor | None = N
     return (distortion if weight is None else distortion * weight).mean()
 
 
-def ranked_loss(errors: torch.Tensor, *, mask: torch.Tensor | None = None, top_fraction: float = 0.5) -> torch.Tensor:
+def ranked_loss(errors: torch.Tensor, *, mask: torch.Tensor | None = None, top_fraction: float = 0.5,
+                groups: tuple[torch.Tensor, int] | None = None) -> torch.Tensor:
     """Large-error-focused mean: the mean of the largest ``top_fraction`` of ``errors``.
 
     This is the ranking operator R(.) of method.md §5: small errors (already fitted pixels,
     noise) are ignored and the gradient concentrates on the worst pixels. ``top_fraction=1``
     is the plain mean. Pixels outside ``mask`` are ignored; no valid pixel gives 0.
+
+    ``groups``: ``(labels, count)``, labels in ``[0, count)`` of ``errors``' shape. Each
+    group ranks its own valid pixels: the loss averages the largest ``top_fraction`` of every
+    group's errors (one sum over all taken pixels). A scene's objects (method.md §11) are
+    the groups, so one object with large errors does not push another's out of the ranking.
     """
     if not 0.0 < top_fraction <= 1.0:
         raise ValueError(f"ranked_loss: top_fraction must be in (0, 1], got {top_fraction}")
+    if groups is not None:
+        return _grouped_ranked_loss(errors, mask, top_fraction, *groups)
     e = errors.reshape(-1)
     if mask is None:
         k = max(1, int(math.ceil(top_fraction * e.numel())))
@@ -130,14 +155,33 @@ def ranked_loss(errors: torch.Tensor, *, mask: torch.Tensor | None = None, top_f
     return (e[order] * take).sum() / k.clamp_min(1.0)
 
 
+def _grouped_ranked_loss(errors, mask, top_fraction: float, labels: torch.Tensor, count: int) -> torch.Tensor:
+    """:func:`ranked_loss` within each group of ``labels``: one sort by error (invalid pixels
+    last), a stable sort by group, and each pixel's rank is its place after its group's start."""
+    e = errors.reshape(-1)
+    g = labels.reshape(-1).long()
+    valid = torch.ones_like(g, dtype=torch.bool) if mask is None else mask.reshape(-1).bool()
+    order = torch.sort(torch.where(valid, e.detach(), torch.full_like(e, -torch.inf)), descending=True,
+                       stable=True).indices
+    order = order[torch.sort(g[order], stable=True).indices]
+    total = torch.bincount(g, minlength=count)
+    start = torch.cumsum(total, 0) - total
+    k = torch.ceil(top_fraction * torch.bincount(g, weights=valid.to(e.dtype), minlength=count))
+    gs = g[order]
+    take = (torch.arange(e.numel(), device=e.device) - start[gs]) < k[gs]
+    return (e[order] * take).sum() / k.sum().clamp_min(1.0)
+
+
 def ranked_normal_loss(
     n1: torch.Tensor,
     n2: torch.Tensor,
     *,
     mask: torch.Tensor | None = None,
     top_fraction: float = 0.5,
+    groups: tuple[torch.Tensor, int] | None = None,
 ) -> torch.Tensor:
-    """``R(1 - cos(n1, n2))`` over pixels [H, W, 3] (method.md §5 L_normal / L_prior).
+    """``R(1 - cos(n1, n2))`` over pixels [H, W, 3] (method.md §5 L_normal / L_prior);
+    ``groups`` as in :func:`ranked_loss`.
 
     Normals need not be unit length (rendered normals are alpha-weighted); the cosine
     normalises them. Pixels where either normal is zero count as valid only if ``mask``
@@ -149,4 +193,4 @@ def ranked_normal_loss(
     valid = (l1 > 1e-8) & (l2 > 1e-8)
     if mask is not None:
         valid = valid & mask.bool()
-    return ranked_loss(1.0 - cos, mask=valid, top_fraction=top_fraction)
+    return ranked_loss(1.0 - cos, mask=valid, top_fraction=top_fraction, groups=groups)

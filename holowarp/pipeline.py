@@ -154,7 +154,7 @@ class _Run:
     def main_loop(self):
         self._rebuild_optimizers(self.ckpt.optimizers if self.ckpt is not None else None,
                                  learn_scales=self.state.first_prune_done)
-        self.tensors = ViewTensors(self.ds, self.device)
+        self.tensors = ViewTensors(self.ds, self.device, pieces=self.pieces)
         for ev in self.cfg.schedule.events(self.state.main_iter):
             if isinstance(ev, GaussianStep):
                 self.on_step(ev)

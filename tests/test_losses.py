@@ -11,9 +11,11 @@ import torch
 from holowarp.camera import intrinsics_from_fov, look_at
 from holowarp.losses import (
     depth_to_normal,
+    depth_to_points,
     distortion_loss,
     l1_dssim_loss,
     mask_loss,
+    nearest_box,
     normal_consistency_loss,
     ranked_loss,
     ranked_normal_loss,
@@ -97,6 +99,64 @@ def test_ranked_loss_averages_only_the_largest_errors(rng):
     assert float(ranked_loss(e.detach(), mask=mask)) == 0.0
     with pytest.raises(ValueError, match="top_fraction"):
         ranked_loss(e, top_fraction=0.0)
+
+
+@pytest.mark.parametrize("frac", [0.37, 1.0])
+def test_grouped_ranked_loss_ranks_each_group_apart(rng, frac):
+    """Value and gradient against a NumPy loop over the groups: each group's largest
+    ceil(frac * valid) errors, averaged together. One group is the ungrouped loss."""
+    shape, count = (30, 40), 4
+    e = torch.tensor(rng.uniform(0.1, 2.0, shape), requires_grad=True)
+    labels = torch.tensor(rng.integers(0, count - 1, shape), dtype=torch.int32)  # group 3 stays empty
+    labels[0, :5] = 2
+    mask = torch.tensor(rng.uniform(size=shape) > 0.3)
+    loss = ranked_loss(e, mask=mask, top_fraction=frac, groups=(labels, count))
+    loss.backward()
+    E, L, M = e.detach().numpy(), labels.numpy(), mask.numpy()
+    want = np.zeros(shape, dtype=bool)
+    for g in range(count):
+        idx = np.flatnonzero(((L == g) & M).ravel())
+        k = math.ceil(frac * idx.size)
+        want.ravel()[idx[np.argsort(-E.ravel()[idx], kind="stable")[:k]]] = True
+    assert float(loss.detach()) == pytest.approx(float(E[want].mean()), rel=1e-12)
+    assert np.allclose(e.grad.numpy(), want / want.sum())
+    ones = torch.zeros(shape, dtype=torch.int32)
+    plain = ranked_loss(e.detach(), mask=mask, top_fraction=frac)
+    assert float(ranked_loss(e.detach(), mask=mask, top_fraction=frac, groups=(ones, 1))) == pytest.approx(float(plain))
+    # A group of small errors keeps its share: ungrouped, the large group takes the ranking.
+    small = torch.where(labels == 0, e.detach() * 0.01, e.detach())
+    g0 = (labels == 0) & mask
+    assert float(ranked_loss(small, mask=g0, top_fraction=frac)) > 0
+    if frac < 1:
+        picked = torch.zeros_like(small, requires_grad=True)
+        ranked_loss(small + picked, mask=mask, top_fraction=frac).backward()
+        assert float(picked.grad[g0].abs().sum()) == 0.0
+        picked.grad = None
+        ranked_loss(small + picked, mask=mask, top_fraction=frac, groups=(labels, count)).backward()
+        assert int((picked.grad[g0] != 0).sum()) == math.ceil(frac * int(g0.sum()))
+
+
+def test_pixels_are_labelled_by_the_box_nearest_their_surface_point(rng):
+    """depth_to_points inverts the projection (skew included); nearest_box against a loop."""
+    w, h = 20, 16
+    V = look_at(np.array([0.4, -2.0, 0.9]))
+    K = intrinsics_from_fov(math.radians(50), w, h)
+    K[0, 1] = 0.7
+    depth = rng.uniform(1.5, 2.5, (h, w))
+    pts = depth_to_points(torch.tensor(depth), torch.tensor(K), torch.tensor(V)).numpy()
+    cam = pts @ V[:3, :3].T + V[:3, 3]
+    uv = cam @ K.T
+    ys, xs = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
+    assert np.allclose(cam[..., 2], depth) and np.allclose(uv[..., 0] / uv[..., 2], xs)
+    assert np.allclose(uv[..., 1] / uv[..., 2], ys)
+    lo = rng.uniform(-1, 0.5, (3, 3))
+    lo[:, 0] = [-1.0, 0.0, 1.0]  # disjoint boxes: a point inside one is inside only that one
+    boxes = np.stack([lo, lo + rng.uniform(0.1, 0.6, (3, 3))], 1)
+    got = nearest_box(torch.tensor(pts), torch.tensor(boxes)).numpy()
+    p = pts[..., None, :]
+    gap = np.maximum(boxes[:, 0] - p, 0) + np.maximum(p - boxes[:, 1], 0)
+    assert np.array_equal(got, np.linalg.norm(gap, axis=-1).argmin(-1))
+    assert nearest_box(torch.tensor(boxes[1].mean(0)), torch.tensor(boxes)).item() == 1
 
 
 def test_ranked_normal_loss_is_scale_invariant_and_skips_empty_pixels():

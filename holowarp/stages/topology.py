@@ -204,12 +204,18 @@ def after_first_prune(model: TetGaussians) -> None:
 
 class ViewTensors:
     """The training images composited on ``background`` (N, H, W, 3), the masks (N, H, W),
-    the optional normal maps (N, H, W, 3) and the cameras on the model's device, uploaded once."""
+    the optional normal maps (N, H, W, 3) and the cameras on the model's device, uploaded once.
 
-    def __init__(self, dataset, device, background=(0.0, 0.0, 0.0)):
+    ``pieces`` (a scene, method.md §11): the objects' boxes ``[(lo (3,), hi (3,)), ...]``
+    (:func:`holowarp.stages.objects.hull_pieces`), kept as ``boxes`` (P, 2, 3); the ranked
+    normal losses then rank each object's pixels apart (:func:`pixel_objects`). Else None."""
+
+    def __init__(self, dataset, device, background=(0.0, 0.0, 0.0), *, pieces=None):
         self.background = torch.as_tensor(background, dtype=torch.float32, device=device)
         self.images = torch.as_tensor(dataset.composite(background), device=device)
         self.masks = torch.as_tensor(dataset.masks, device=device)
+        self.boxes = (None if pieces is None else
+                      torch.as_tensor(np.array([[lo, hi] for lo, hi in pieces]), dtype=torch.float32, device=device))
         self.normals = torch.as_tensor(dataset.normals, device=device) if dataset.normals is not None else None
         # Cameras: (N, 4, 4) and (N, 3, 3) float32 on the device for the losses, and float64
         # on the host for the rasteriser, which reads them there (no per-step upload or read-back).
@@ -217,6 +223,17 @@ class ViewTensors:
         self.K = torch.as_tensor(dataset.K, dtype=torch.float32, device=device)
         self.viewmats_host = torch.as_tensor(dataset.viewmats, dtype=torch.float64)
         self.K_host = torch.as_tensor(dataset.K, dtype=torch.float64)
+
+
+def pixel_objects(depth: torch.Tensor, K: torch.Tensor, viewmat: torch.Tensor, boxes: torch.Tensor | None):
+    """``(labels (H, W), P)``: for each pixel, the object (index into ``boxes`` (P, 2, 3)) whose
+    box is nearest the surface point its camera-z ``depth`` [H, W] places there; None without
+    boxes (one object). Pixels without depth get some label; the losses skip them anyway."""
+    if boxes is None:
+        return None
+    from holowarp.losses import depth_to_points, nearest_box
+
+    return nearest_box(depth_to_points(depth.detach(), K, viewmat), boxes), int(boxes.shape[0])
 
 
 class GaussianOptimizers:
@@ -289,14 +306,15 @@ def gaussian_step(
     n_depth = losses.depth_to_normal(out["median_depth"], Kt, vm)
     opaque = out["alpha"].detach() > 0.5
     frac = config.normal_rank_fraction
-    l_normal = losses.ranked_normal_loss(out["normal"], n_depth, mask=opaque, top_fraction=frac)
+    groups = pixel_objects(out["median_depth"], Kt, vm, tensors.boxes)
+    l_normal = losses.ranked_normal_loss(out["normal"], n_depth, mask=opaque, top_fraction=frac, groups=groups)
     loss = config.w_rgb * l_rgb + config.w_mask * l_mask + config.w_normal * l_normal
     terms = {"rgb": l_rgb, "mask": l_mask, "normal": l_normal}
     if tensors.normals is not None and config.w_prior > 0:
         prior = tensors.normals[view]
         has = opaque & (prior.norm(dim=-1) > 0.5) & (n_depth.norm(dim=-1) > 0.5)
         e = _one_minus_cos(prior, out["normal"]) + _one_minus_cos(prior, n_depth)
-        l_prior = losses.ranked_loss(e, mask=has, top_fraction=frac)
+        l_prior = losses.ranked_loss(e, mask=has, top_fraction=frac, groups=groups)
         loss = loss + config.w_prior * l_prior
         terms["prior"] = l_prior
     if topology_phase and not model.free_opacity and edges is not None:
