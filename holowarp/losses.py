@@ -164,9 +164,11 @@ def _grouped_ranked_loss(errors, mask, top_fraction: float, labels: torch.Tensor
     order = torch.sort(torch.where(valid, e.detach(), torch.full_like(e, -torch.inf)), descending=True,
                        stable=True).indices
     order = order[torch.sort(g[order], stable=True).indices]
-    total = torch.bincount(g, minlength=count)
+    # index_add_ into ``count`` slots, not bincount: its length would need a read of max(g).
+    total = torch.zeros(count, dtype=torch.long, device=e.device).index_add_(0, g, torch.ones_like(g))
     start = torch.cumsum(total, 0) - total
-    k = torch.ceil(top_fraction * torch.bincount(g, weights=valid.to(e.dtype), minlength=count))
+    n_valid = torch.zeros(count, dtype=e.dtype, device=e.device).index_add_(0, g, valid.to(e.dtype))
+    k = torch.ceil(top_fraction * n_valid)
     gs = g[order]
     take = (torch.arange(e.numel(), device=e.device) - start[gs]) < k[gs]
     return (e[order] * take).sum() / k.sum().clamp_min(1.0)
