@@ -18,8 +18,11 @@ after its flips). Cleanup's blunting of knife ridges (step 7 of
 step off, the previous hash holds. On 2026-12-02 a fresh install (warp-lang 1.19.0, numpy
 2.4.6, scipy 1.17.1, torch 2.13.0+cpu) gave another hash with the same 253 tets and 128
 vertices, at the commit that had recorded it (343fdbf) as well: a dependency's rounding, not
-the code, so it was recorded again. Change it only with a change
-that is meant to change the optimisation's numbers, and say so in that commit.
+the code, so it was recorded again. The same commit (c168c12), dependencies and seed give a
+second hash on another build machine (an AMD EPYC without the previous one's instruction
+set): float32 reductions in the kernels round differently by CPU. So each hash is recorded
+with the machine it came from, and a run must give one of them. Change them only with a
+change that is meant to change the optimisation's numbers, and say so in that commit.
 """
 
 from __future__ import annotations
@@ -31,8 +34,12 @@ import numpy as np
 import pytest
 import trimesh
 
-#: sha256 of (vertices as <f8, tets as <i8) of ``tetmesh.vtu`` after the run below.
-RECORDED_HASH = "953e2f7765f453099373fc928bd7ea8e745df52dd5d2d7fce4e7fa7729fa45d8"
+#: sha256 of (vertices as <f8, tets as <i8) of ``tetmesh.vtu`` after the run below, by the
+#: machine that recorded it (module docstring).
+RECORDED_HASHES = {
+    "953e2f7765f453099373fc928bd7ea8e745df52dd5d2d7fce4e7fa7729fa45d8": "CI and the build machine of 2026-12-01",
+    "6eb7673db5f7da68a3c071dc1b03770d58239a9716aa0a008ecac5ace64e63b7": "build machine of 2026-12-02 (AMD EPYC)",
+}
 RECORDED_SIZE = (253, 128)  # tets, vertices
 
 
@@ -69,4 +76,4 @@ def test_a_fixed_start_gives_the_recorded_mesh(torus_data, tmp_path, one_torch_t
     digest = hashlib.sha256(m.vertices.astype("<f8").tobytes() + m.tets.astype("<i8").tobytes()).hexdigest()
     assert report["genus"] == 1 and report["components"] == 1
     got = (m.num_tets, m.num_vertices, digest)
-    assert got == (*RECORDED_SIZE, RECORDED_HASH), f"the run gave {got}"
+    assert (m.num_tets, m.num_vertices) == RECORDED_SIZE and digest in RECORDED_HASHES, f"the run gave {got}"
