@@ -168,7 +168,7 @@ class _Run:
         self.bars.close("topology", "gaussian")
 
     def on_prune(self, ev: Prune):
-        if self.cfg.topology.genus_guard and self.evidence is None:
+        if self.cfg.topology.uses_evidence and self.evidence is None:
             self.evidence = EmptyEvidence(self.out / "stage0" / "gaussians.ply", self.ds, self.cfg.topology,
                                           device=self.device)
         info = prune(self.model, self.cfg.topology, evidence=self.evidence(self.model.mesh()) if self.evidence else None)

@@ -24,7 +24,7 @@ from holowarp.stages.tet_init import scaled_hull
 from holowarp.carve import hull_field, inside_hull
 from holowarp.stages.topology import init_phi, prune
 from holowarp.tetgs import TetGaussians, tet_mean_radius
-from holowarp.tetmesh import tetrahedralize_surface
+from holowarp.tetmesh import TetMesh, tetrahedralize_surface
 
 RADIUS = 0.35
 
@@ -307,6 +307,116 @@ def test_prune_removes_low_alpha_tets_and_keeps_the_largest_piece():
         model.opacity_logit.data[:] = -10.0
     emptied = prune(model, TopologyConfig())
     assert emptied["emptied"] and model.num_tets == info["tets_after"]
+
+
+PLAIN = TopologyConfig(genus_guard=False, split_guard=None)  # the prune without its topology guards
+
+
+def _model_with_low(mesh, low) -> TetGaussians:
+    model = TetGaussians(mesh, free_opacity=True)
+    with torch.no_grad():
+        model.opacity_logit.data = torch.logit(torch.as_tensor(np.where(low, 0.01, 0.9), dtype=torch.float32))
+    return model
+
+
+def test_split_guard_keeps_a_piece_the_views_show_attached():
+    a = box_tetmesh((6, 3, 3))
+    c = a.vertices[a.tets].mean(axis=1)
+    slab = (c[:, 0] > 2 / 6) & (c[:, 0] < 3 / 6)  # cuts off the piece x < 1/3 (1/3 of the tets)
+    piece = c[:, 0] < 2 / 6
+    cfg = TopologyConfig(genus_guard=False, split_guard=0.05)
+    # No view shows the slab empty: the piece stays joined, by as few slab tets as that takes.
+    model = _model_with_low(a, slab)
+    info = prune(model, cfg, evidence=np.zeros(a.num_tets, bool))
+    out = model.mesh()
+    assert info["removed_components"] == 0 and out.num_components() == 1 and out.manifold()["manifold"]
+    assert out.genus() == 0 and out.boundary_shells() == 1
+    assert 0 < info["kept_for_split"] < int(slab.sum()) and info["pruned"] == int(slab.sum()) - info["kept_for_split"]
+    assert model.num_tets == a.num_tets - info["pruned"]
+    # The whole slab seen empty: the split is real and the smaller piece goes.
+    model = _model_with_low(a, slab)
+    info = prune(model, cfg, evidence=slab)
+    assert info["kept_for_split"] == 0
+    assert info["removed_components"] == 1 and info["tets_removed_by_component"] == int(piece.sum())
+    # A speck below the fraction is cut off as before, whatever the evidence.
+    corner = (c[:, 0] < 1 / 6) & (c[:, 1] < 1 / 3) & (c[:, 2] < 1 / 3)
+    ring = ~corner & (c[:, 0] < 2 / 6) & (c[:, 1] < 2 / 3) & (c[:, 2] < 2 / 3)
+    model = _model_with_low(a, ring)
+    info = prune(model, TopologyConfig(split_guard=0.05), evidence=np.zeros(a.num_tets, bool))
+    assert info["kept_for_split"] == 0 and info["tets_removed_by_component"] == int(corner.sum())
+    # Without evidence (the guards off) the prune is the plain rule.
+    model = _model_with_low(a, slab)
+    assert prune(model, cfg)["removed_components"] == 1
+
+
+def test_genus_guard_opens_a_tunnel_only_where_the_views_see_through():
+    a = box_tetmesh((5, 5, 3))
+    c = a.vertices[a.tets].mean(axis=1)
+    bore = (np.abs(c[:, 0] - 0.5) < 0.1) & (np.abs(c[:, 1] - 0.5) < 0.1)  # through z: genus 0 -> 1
+    cfg = TopologyConfig(split_guard=None)
+    model = _model_with_low(a, bore)
+    info = prune(model, cfg, evidence=np.zeros(a.num_tets, bool))
+    # The bore is dug as deep as it goes without opening: a plug of blind tets stays.
+    assert info["genus_after"] == 0 and 0 < info["kept_for_genus"] < int(bore.sum())
+    assert model.mesh().manifold()["manifold"] and model.mesh().boundary_shells() == 1
+    model = _model_with_low(a, bore)
+    info = prune(model, cfg, evidence=bore)
+    assert info["kept_for_genus"] == 0 and info["genus_after"] == 1 and info["pruned"] == int(bore.sum())
+    # The plain rule opens it whatever the views show.
+    model = _model_with_low(a, bore)
+    assert prune(model, PLAIN, evidence=np.zeros(a.num_tets, bool))["genus_after"] == 1
+
+
+def test_genus_guard_sees_handles_cut_while_tunnels_open():
+    """A prune that opens a tunnel where the views see through and cuts a handle where they
+    do not leaves the genus as it was; the guard still keeps the handle."""
+    a = box_tetmesh((7, 3, 3))
+    c = a.vertices[a.tets].mean(axis=1)
+    hole = (np.abs(c[:, 0] - 0.5) < 1 / 7) & (np.abs(c[:, 1] - 0.5) < 0.2)  # a tunnel through z
+    cut = (np.abs(c[:, 0] - 0.5) < 1 / 7) & (c[:, 1] < 1 / 3)  # and the bar beside it, cut
+    model = _model_with_low(a, hole | cut)
+    plain = prune(model, PLAIN, evidence=hole)
+    assert plain["genus_after"] == plain["genus_before"] == 0 and model.mesh().num_components() == 1
+    model = _model_with_low(a, hole | cut)
+    info = prune(model, TopologyConfig(split_guard=None), evidence=hole)
+    assert info["genus_after"] == 1 and info["kept_for_genus"] > 0
+
+
+def test_simple_tets_are_exactly_those_whose_removal_keeps_the_topology(rng):
+    from holowarp.manifold import simple_tets, thin_simple
+
+    a = box_tetmesh((4, 4, 3))
+    keep = rng.random(a.num_tets) < 0.8
+    keep, _ = restore_until_manifold_all(a, keep)
+    sub = lambda k: TetMesh(a.vertices, a.tets[k], validate=False)  # noqa: E731
+    sig = lambda m: (m.num_components(), m.genus(), m.boundary_shells())  # noqa: E731
+    base = sig(sub(keep))
+    ids = np.flatnonzero(keep)
+    flags = simple_tets(a.tets, keep, a.face_adjacency().astype(np.int64), ids)
+    assert flags.any() and not flags.all()
+    for t, f in zip(ids, flags):
+        k = keep.copy()
+        k[t] = False
+        if f:  # a simple tet's removal keeps components, genus and cavities
+            assert sig(sub(k)) == base
+    # Thinning every tet keeps the topology and leaves no simple candidate behind.
+    prio = rng.random(a.num_tets)
+    out, gone = thin_simple(a.vertices, a.tets, keep, keep.copy(), prio)
+    assert gone > 0 and sig(sub(out)) == base and sub(out).manifold()["manifold"]
+
+
+def restore_until_manifold_all(mesh, keep):
+    """``keep`` made boundary-manifold by putting tets back (the prune's own guard)."""
+    from holowarp.manifold import restore_until_manifold
+
+    return restore_until_manifold(mesh.vertices, mesh.tets, keep, ~keep)
+
+
+def test_split_guard_setting_is_checked():
+    with pytest.raises(ValueError, match="split_guard"):
+        TopologyConfig(split_guard=1.5)
+    assert TopologyConfig(split_guard=0.0).uses_evidence and TopologyConfig().uses_evidence
+    assert not PLAIN.uses_evidence
 
 
 def _grid_carved_model(ds, cells: int) -> TetGaussians:

@@ -36,7 +36,7 @@ import torch
 from holowarp.camera import project_points
 from holowarp.carve import in_front_of_surface, inside_hull
 from holowarp.config import TopologyConfig, kept_components
-from holowarp.manifold import restore_until_manifold
+from holowarp.manifold import restore_until_manifold, thin_simple
 from holowarp.tetgs import TetGaussians
 from holowarp.tetmesh import TetMesh
 
@@ -75,8 +75,9 @@ def surfel_depth_maps(gaussians_ply, dataset, views, *, device="cpu"):
 class EmptyEvidence:
     """Which tets some training view shows to be empty space: their centroid projects outside
     a silhouette (outside the visual hull), or lies in front of the stage-0 surfels' surface
-    in ``depth_carve_min_views`` views (the prune's genus guard). The surfels' depth maps are
-    rendered once, on first use."""
+    in ``depth_carve_min_views`` views (the prune's topology guards). The surfels' depth maps
+    are rendered once, on first use; a run without stage-0 surfels (a checkpoint made without
+    stage 0) has the silhouettes' evidence only."""
 
     def __init__(self, gaussians_ply, dataset, config: TopologyConfig, *, device="cpu"):
         self.ply, self.ds, self.cfg, self.device = gaussians_ply, dataset, config, device
@@ -84,12 +85,16 @@ class EmptyEvidence:
         self._maps = None
 
     def __call__(self, mesh: TetMesh) -> np.ndarray:
-        if self._maps is None:
+        from pathlib import Path
+
+        if self._maps is None and Path(self.ply).is_file():
             self._maps = surfel_depth_maps(self.ply, self.ds, self.views, device=self.device)
         c = mesh.vertices[mesh.tets].mean(axis=1)
+        outside = ~inside_hull(self.ds, c, self.ds.train_idx, device=self.device)
+        if self._maps is None:
+            return outside
         E = mesh.edges()
         tol = self.cfg.depth_carve_tol * float(np.linalg.norm(mesh.vertices[E[:, 0]] - mesh.vertices[E[:, 1]], axis=1).mean())
-        outside = ~inside_hull(self.ds, c, self.ds.train_idx, device=self.device)
         return outside | in_front_of_surface(self.ds, c, self.views, *self._maps, tol=tol,
                                              min_views=self.cfg.depth_carve_min_views, window=self.cfg.depth_carve_window)
 
@@ -381,9 +386,13 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
       manifold. Restoring every pruned tet gives back the (manifold) mesh before the
       prune, so this terminates with a manifold boundary whenever the input had one;
     - with ``evidence`` (M,) bool, the tets some view shows to be empty space (outside a
-      silhouette, or in front of the rendered surface): if the prune would change the
-      boundary's genus (open a tunnel, or cut a handle), only tets with evidence are
-      pruned, so topology follows the images, never the thickness of the tets.
+      silhouette, or in front of the rendered surface): if the tets no view shows empty
+      decide the topology (the prune with them and the prune without them leave different
+      genera, ``config.genus_guard``, or only the first cuts off a piece of more than
+      ``config.split_guard`` of the kept tets), the prune keeps the topology of the second
+      and then removes every such blind tet whose removal keeps it
+      (:func:`holowarp.manifold.thin_simple`, lowest alpha first), so topology follows the
+      images, never the thickness of the tets.
 
     If pruning would empty the mesh, nothing is pruned (and the report says so). If it
     splits the mesh, the largest face-connected component is kept and the rest counted;
@@ -396,7 +405,8 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
         boundary edges + vertices the plain rule would have left, before the guards below),
         ``kept_cavity`` (low-alpha tets kept because sealed), ``kept_dents`` (low-alpha tets
         kept because three or more of their faces meet kept tets), ``kept_pits``,
-        ``restored_for_manifold``, ``kept_for_genus``, ``genus_before``, ``genus_after``,
+        ``restored_for_manifold``, ``kept_for_genus``, ``kept_for_split`` (low-alpha tets kept
+        by the guards), ``genus_before``, ``genus_after``,
         ``removed_components``, ``tets_removed_by_component``, ``tets_after``, ``emptied``,
         and with ``config.min_component`` ``kept_components``.
     """
@@ -409,7 +419,7 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
     info = {"tets_before": M, "low_alpha": int(low.sum()), "emptied": False}
     if low.all():
         info.update(emptied=True, pruned=0, kept_cavity=0, kept_dents=0, kept_pits=0, restored_for_manifold=0,
-                    kept_for_genus=0, removed_components=0, raw_components=0, raw_non_manifold=0,
+                    kept_for_genus=0, kept_for_split=0, removed_components=0, raw_components=0, raw_non_manifold=0,
                     tets_removed_by_component=0, tets_after=M)
         return info
     adj = mesh.face_adjacency()
@@ -424,16 +434,11 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
     info["kept_pits"] = _keep_pits(mesh, drop, config)
     keep, ids, n, removed, n_kept = _guarded_keep(mesh, drop, info, config.min_component)
     info["genus_before"] = int(mesh.genus())
-    info["kept_for_genus"] = 0
-    # One object: the guard applies when the prune leaves one piece. A scene: when the prune
-    # keeps as many pieces as there were (it split no object; the genus is then the sum of
-    # the objects' genera, so a change still means a tunnel opened or a handle was cut).
-    unsplit = n == 1 if config.min_component is None else n_kept == mesh.num_components()
-    if evidence is not None and unsplit and TetMesh(mesh.vertices, T[ids], validate=False).genus() != info["genus_before"]:
-        blind = drop & ~np.asarray(evidence, dtype=bool)
-        info["kept_for_genus"] = int(blind.sum())
-        drop &= ~blind
-        keep, ids, n, removed, n_kept = _guarded_keep(mesh, drop, info, config.min_component)
+    info["kept_for_genus"] = info["kept_for_split"] = 0
+    if evidence is not None and config.uses_evidence:
+        guarded = _guarded_by_evidence(mesh, drop, np.asarray(evidence, dtype=bool), alpha, (ids, removed), info, config)
+        if guarded is not None:
+            ids, n, removed, n_kept = guarded
     info["pruned"] = int(M - len(ids) - removed)
     model.keep(ids)
     info.update(removed_components=max(n - n_kept, 0), tets_removed_by_component=removed, tets_after=model.num_tets,
@@ -441,6 +446,48 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
     if config.min_component is not None:
         info["kept_components"] = n_kept
     return info
+
+
+def _guarded_by_evidence(mesh: TetMesh, drop, evidence, alpha, plain: tuple, info: dict, config: TopologyConfig):
+    """The prune's topology guards (:func:`prune`, :func:`_topology_guard`): None when the
+    tets no view shows empty (``drop & ~evidence``) do not decide the topology, else the
+    guarded prune as (kept ids, components, tets removed with cut-off pieces, components
+    kept): the evidence-only prune, then every blind tet whose removal keeps its topology
+    removed too (:func:`holowarp.manifold.thin_simple`, lowest alpha first). Sets the
+    tripped guard's ``info`` key to the blind tets kept."""
+    blind = drop & ~evidence
+    if not blind.any():
+        return None
+    alt: dict = {}
+    _, ids, n, removed, n_kept = _guarded_keep(mesh, drop & ~blind, alt, config.min_component)
+    guard = _topology_guard(mesh, plain, (ids, removed), config)
+    if guard is None:
+        return None
+    kept = np.zeros(mesh.num_tets, dtype=bool)
+    kept[ids] = True
+    kept, _ = thin_simple(mesh.vertices, mesh.tets, kept, blind, alpha)
+    info["restored_for_manifold"] = alt["restored_for_manifold"]
+    info[guard] = int((blind & kept).sum())
+    return np.flatnonzero(kept), n, removed, n_kept
+
+
+def _topology_guard(mesh: TetMesh, plain: tuple, seen: tuple, config: TopologyConfig) -> str | None:
+    """Which guard a prune trips, as its report key, or None: the plain prune (``plain``:
+    kept tet ids, tets removed with cut-off pieces) against the one that prunes only tets
+    some view shows to be empty (``seen``, the same pair).
+
+    ``"kept_for_split"`` (``config.split_guard``): the plain prune cuts off pieces holding
+    more than that fraction of the tets it keeps, and the images keep more of them.
+    ``"kept_for_genus"`` (``config.genus_guard``): the two leave different genera, so tets
+    no view shows empty decide a tunnel or a handle (the plain prune's genus may even equal
+    the one before: three handles cut while three tunnels open)."""
+    if config.split_guard is not None and plain[1] > config.split_guard * len(plain[0]) and seen[1] < plain[1]:
+        return "kept_for_split"
+    if config.genus_guard:
+        g_plain = TetMesh(mesh.vertices, mesh.tets[plain[0]], validate=False).genus()
+        if g_plain != TetMesh(mesh.vertices, mesh.tets[seen[0]], validate=False).genus():
+            return "kept_for_genus"
+    return None
 
 
 def _guarded_keep(mesh: TetMesh, drop: np.ndarray, info: dict, min_component: float | None = None):
