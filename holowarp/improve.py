@@ -107,13 +107,17 @@ def _run(args) -> int:
                         device=args.device, json_path=args.json, progress=not args.quiet)
     b, a = info["before"], info["after"]
     flips = sum(info["flips"].values())
-    splits = sum(info["splits"].values())
+    splits = sum(v for k, v in info["splits"].items() if k != "refined")
     o = info["input"]
     note = ""
     if o["reoriented"]:
         note = f"; re-oriented all {o['reoriented']} tets (the file used the opposite winding)"
     elif o["flipped"]:
         note = f"; flipped {o['flipped']} negative tets (--orient)"
+    if info.get("refinement"):
+        r = info["refinement"]
+        note += (f"; thin mesh ({r['thin_fraction']:.0%} of the tets on the boundary alone): every tet split in "
+                 f"eight and improved again")
     print(
         f"wrote {args.dst}: {a['tets']} tets ({b['tets']} before), worst min dihedral "
         f"{b['min_dihedral_worst']:.2f} -> {a['min_dihedral_worst']:.2f} deg, mean {b['min_dihedral_mean']:.1f} -> "

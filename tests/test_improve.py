@@ -314,6 +314,7 @@ CASES = {
     "boundary_needle": lambda rng: _split_edge_near_end(plant_slivers(box_tetmesh((3, 3, 3)), 0.0, rng), True),
     "interior_needle": lambda rng: _split_edge_near_end(plant_slivers(box_tetmesh((3, 3, 3)), 0.0, rng), False),
     "genus_one": _genus_one,
+    "thin_slab": lambda rng: _rough_box(rng, cells=(6, 6, 1), amp=0.15),
 }
 
 
@@ -375,7 +376,7 @@ def test_caps_are_deleted_when_surface_work_comes_first_and_report_counts_every_
     # By default the first round works from inside only (it re-triangulates the caps away);
     # without that round the caps are deleted: one, then its neighbour with its apex.
     mesh = _capped_box(rng)
-    out, _, info = I.improve(mesh, I.ImproveConfig(inside_rounds=0))
+    out, _, info = I.improve(mesh, I.ImproveConfig(inside_rounds=0, thin_fraction=None))
     assert info["flips"]["cap_removal"] == 1 and info["flips"]["cap_vertex_removal"] == 1
     assert out.num_vertices == mesh.num_vertices - 1  # the caps' apex is gone
     assert out.manifold()["manifold"] and out.genus() == mesh.genus() and np.all(out.signed_volumes() > 0)
@@ -388,9 +389,56 @@ def test_caps_are_deleted_when_surface_work_comes_first_and_report_counts_every_
     json.dumps(info)  # report.json-ready
 
 
+def test_red_refinement_splits_every_tet_in_eight_inside_it_and_keeps_the_surface(rng):
+    mesh = _genus_one(rng)
+    w = I._Work(mesh, I.ImproveConfig(), "cpu")
+    w.err = rng.random(len(w.V)) * 1e-3
+    err0, parent0 = w.err.copy(), w.parent.copy()
+    I._red_refine(w)
+    out = TetMesh(w.V, w.T)
+    M = mesh.num_tets
+    assert out.num_tets == 8 * M and np.all(out.signed_volumes() > 0)
+    assert out.volume() == pytest.approx(mesh.volume(), rel=1e-12)
+    assert out.manifold()["manifold"] and out.genus() == mesh.genus() and out.num_components() == 1
+    # Child j * M + i lies in tet i, and inherits its parent.
+    assert np.array_equal(w.parent, np.tile(parent0, 8))
+    P = mesh.vertices[mesh.tets[np.tile(np.arange(M), 8)]]
+    lam = np.linalg.solve(np.transpose(P[:, 1:] - P[:, :1], (0, 2, 1)),
+                          (out.vertices[out.tets].mean(axis=1) - P[:, 0])[..., None])[..., 0]
+    assert np.minimum(1 - lam.sum(axis=1), lam.min(axis=1)).min() > 0
+    # The surface: each old boundary triangle is four new ones with the same area, and each
+    # new vertex is an edge midpoint with the larger surface bound of the edge's ends.
+    v0, f0 = mesh.surface_mesh()
+    v1, f1 = out.surface_mesh()
+    area = lambda v, f: 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1).sum()  # noqa: E731
+    assert len(f1) == 4 * len(f0) and area(v1, f1) == pytest.approx(area(v0, f0), rel=1e-12)
+    assert _ref_hausdorff(mesh, out, rng) <= 1e-12
+    E = mesh.edges().astype(np.int64)
+    mids = 0.5 * (mesh.vertices[E[:, 0]] + mesh.vertices[E[:, 1]])
+    new = w.V[mesh.num_vertices:]
+    order = np.lexsort(new.T[::-1]), np.lexsort(mids.T[::-1])
+    assert np.allclose(new[order[0]], mids[order[1]])
+    assert np.allclose(np.sort(w.err[mesh.num_vertices:]), np.sort(np.maximum(err0[E[:, 0]], err0[E[:, 1]])))
+
+
+def test_a_thin_mesh_is_refined_and_improved_again(improved):
+    mesh, out, parent, info = improved["thin_slab"]
+    ref = info["refinement"]
+    assert ref is not None and ref["thin_fraction"] > 0.25 and ref["tets_after_refinement"] == 8 * ref["tets_before"]
+    assert info["splits"]["refined"] == ref["tets_before"] and out.num_tets >= 7 * ref["tets_before"]
+    assert info["after"]["min_dihedral_mean"] > info["before"]["min_dihedral_mean"]
+    assert improved["planted_slivers"][3]["refinement"] is None  # a solid box is not thin
+    _, out2, _, info2 = improved["thin_slab"][0], *I.improve(mesh, I.ImproveConfig(thin_fraction=None))
+    assert info2["refinement"] is None and out2.num_tets < 2 * mesh.num_tets
+
+
 def test_zero_surface_budget_keeps_the_boundary_exactly(rng):
     mesh = _rough_box(rng, cells=(3, 3, 3))
-    out, _, info = I.improve(mesh, I.ImproveConfig(max_surface_move=0.0))
+    # A 3x3x3 box is thin by the refinement's measure; refined, its surface is the same point
+    # set, split into more triangles.
+    refined, _, rinfo = I.improve(mesh, I.ImproveConfig(max_surface_move=0.0))
+    assert rinfo["refinement"] is not None and _ref_hausdorff(mesh, refined, rng) <= 1e-12
+    out, _, info = I.improve(mesh, I.ImproveConfig(max_surface_move=0.0, thin_fraction=None))
     v0, f0 = mesh.surface_mesh()
     v1, f1 = out.surface_mesh()
     def key(V, F):

@@ -83,6 +83,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -675,13 +676,8 @@ def _fan_candidates(w: _Work, cand: _Candidates, edges: _EdgeTable, k: int, boun
         return
     rv = edges.verts[g, : k + 1]
     u, v, p0, pk = edges.u[g], edges.v[g], rv[:, 0], rv[:, k]
-    # The quad's two boundary triangles flip to its other diagonal.
-    h = cfg.hausdorff_margin * _local_hausdorff(
-        V, np.stack([np.stack([u, v, p0], 1), np.stack([u, v, pk], 1)], 1),
-        np.stack([np.stack([u, p0, pk], 1), np.stack([v, p0, pk], 1)], 1),
-    )
     touched = np.concatenate([u[:, None], v[:, None], rv], axis=1)
-    ok = h + w.err[touched].max(axis=1) <= bound
+    ok = w.err[touched].max(axis=1) <= bound
     if k == 1:
         # The chord becomes a boundary edge: it must not be one already (a pinch).
         ok &= ~np.isin(_edge_keys(p0, pk, N), ctx["bnd_keys"])
@@ -693,6 +689,15 @@ def _fan_candidates(w: _Work, cand: _Candidates, edges: _EdgeTable, k: int, boun
         qnew, qmean, new, diag_ok = _retriangulate_rings(w, u, v, rv, k + 1, edges)
         prio = qnew - qold
         ok &= diag_ok & (prio > cfg.min_gain) & ((qold < cfg.mean_guard) | (qmean >= q[rt].mean(axis=1)))
+    # The quad's two boundary triangles flip to its other diagonal: measured only where the
+    # change is otherwise allowed (the sampled distance is most of this pass's cost).
+    h = np.zeros(len(g))
+    i = np.flatnonzero(ok)
+    h[i] = cfg.hausdorff_margin * _local_hausdorff(
+        V, np.stack([np.stack([u[i], v[i], p0[i]], 1), np.stack([u[i], v[i], pk[i]], 1)], 1),
+        np.stack([np.stack([u[i], p0[i], pk[i]], 1), np.stack([v[i], p0[i], pk[i]], 1)], 1),
+    )
+    ok[i] &= h[i] + w.err[touched[i]].max(axis=1) <= bound
     cand.add(ok, rt, new, touched, prio, h, k)
 
 
@@ -1089,16 +1094,42 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
     rng = np.random.default_rng(0)
     q0 = w.quality()
     before = _summary(w.V, w.T, q0)
-    moved = np.zeros(len(w.V), dtype=bool)
+    ref = _surface_reference(mesh) if cfg.remeasure_budget and bound > 0 else None
+    rounds, moved = _rounds(w, signature, bound, ref, rng, np.zeros(len(w.V), dtype=bool), progress)
+    refinement = None
+    share = _thin_share(w)
+    if cfg.thin_fraction is not None and share > cfg.thin_fraction:
+        tets_before = len(w.T)
+        _red_refine(w)
+        w.cfg = replace(cfg, boundary_threshold=max(cfg.boundary_threshold, cfg.thin_boundary_threshold))
+        more, moved = _rounds(w, signature, bound, ref, rng, np.r_[moved, np.zeros(len(w.V) - len(moved), bool)],
+                              progress)
+        w.cfg = cfg
+        rounds += more
+        refinement = {"thin_fraction": share, "tets_before": tets_before, "tets_after_refinement": 8 * tets_before,
+                      "rounds": more}
+    out, _ = TetMesh(w.V, w.T, validate=False).remove_unused_vertices()
+    info = _report(w, mesh, out, before, L, signature, int(moved.sum()))
+    info.update(rounds=rounds, refinement=refinement, seconds=time.perf_counter() - t0)
+    return out, w.parent.copy(), info
+
+
+def _surface_reference(mesh: TetMesh):
+    """The input surface for :func:`_remeasure_budget`: (vertices, faces, samples)."""
+    va, fa = mesh.surface_mesh()
+    va, fa = np.asarray(va, np.float64), np.asarray(fa, np.int64)
+    return va, fa, np.einsum("kj,fjd->fkd", _PATCH_GRID, va[fa]).reshape(-1, 3)
+
+
+def _rounds(w: _Work, signature: tuple, bound: float, ref, rng, moved: np.ndarray, progress) -> tuple[int, np.ndarray]:
+    """Rounds (module docstring) until one raises neither the worst nor the mean quality and
+    splits nothing, or ``max_rounds``; returns (rounds run, vertices smoothed (N,) bool)."""
+    cfg = w.cfg
+    q0 = w.quality()
     best_worst, best_mean = float(q0.min()), float(q0.mean())
     rounds = 0
-    ref = None
     for rounds in range(1, cfg.max_rounds + 1):
-        if rounds > cfg.inside_rounds and cfg.remeasure_budget and bound > 0:
-            if ref is None:
-                va, fa = mesh.surface_mesh()
-                va, fa = np.asarray(va, np.float64), np.asarray(fa, np.int64)
-                ref = (va, fa, np.einsum("kj,fjd->fkd", _PATCH_GRID, va[fa]).reshape(-1, 3))
+        if rounds > cfg.inside_rounds and ref is not None:
             _remeasure_budget(w, ref)
         moved = _round(w, signature, bound if rounds > cfg.inside_rounds else 0.0, rng, moved)
         q = w.quality()
@@ -1112,10 +1143,51 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
             continue
         if not progressed and rounds > cfg.inside_rounds:
             break
-    out, _ = TetMesh(w.V, w.T, validate=False).remove_unused_vertices()
-    info = _report(w, mesh, out, before, L, signature, int(moved.sum()))
-    info.update(rounds=rounds, seconds=time.perf_counter() - t0)
-    return out, w.parent.copy(), info
+    return rounds, moved
+
+
+# ---------------------------------------------------------------------------- thin meshes
+def _thin_share(w: _Work) -> float:
+    """Share of the tets whose four vertices all lie on the boundary (0 for no tets)."""
+    bf = w.mesh().boundary_faces().reshape(-1)
+    on_b = np.zeros(len(w.V), dtype=bool)
+    on_b[bf] = True
+    return float(on_b[w.T].all(axis=1).mean()) if len(w.T) else 0.0
+
+
+def _red_refine(w: _Work) -> None:
+    """Split every tet into eight (Bey's red refinement): a vertex at every edge midpoint,
+    four corner tets like the parent, and the inner octahedron cut into four along its
+    shortest diagonal. Midpoints of boundary edges lie on the boundary triangles, so the
+    surface is unchanged as a point set; each child keeps its parent's parent, and a new
+    vertex the surface bound of its edge's ends (its triangles lie inside theirs)."""
+    V, T, N = w.V, w.T, len(w.V)
+    e = np.sort(T[:, TET_EDGES], axis=2).reshape(-1, 2)
+    keys, inv = np.unique(e[:, 0] * N + e[:, 1], return_inverse=True)
+    eu, ev = keys // N, keys % N
+    mid = (N + inv.reshape(-1, 6)).T  # midpoints of the local edges ab ac ad bc bd cd
+    V2 = np.concatenate([V, 0.5 * (V[eu] + V[ev])])
+    a, b, c, d = T.T
+    ab, ac, ad, bc, bd, cd = mid
+    kids = [(a, ab, ac, ad), (ab, b, bc, bd), (ac, bc, c, cd), (ad, bd, cd, d)]
+    # The octahedron around each diagonal, its other four corners in cyclic order.
+    octs = (((ab, cd), (ac, bc, bd, ad)), ((ac, bd), (ab, bc, cd, ad)), ((ad, bc), (ab, ac, cd, bd)))
+    length = np.stack([np.linalg.norm(V2[p] - V2[q], axis=1) for (p, q), _ in octs], axis=1)
+    best = np.argmin(length, axis=1)
+    pick = lambda xs: np.choose(best, xs)  # noqa: E731
+    p, q = pick([o[0][0] for o in octs]), pick([o[0][1] for o in octs])
+    ring = [pick([o[1][i] for o in octs]) for i in range(4)]
+    kids += [(p, q, ring[i], ring[(i + 1) % 4]) for i in range(4)]
+    T2 = np.concatenate([np.stack(k, axis=1) for k in kids])
+    P = V2[T2]
+    neg = np.einsum("ij,ij->i", P[:, 1] - P[:, 0], np.cross(P[:, 2] - P[:, 0], P[:, 3] - P[:, 0])) < 0
+    T2[neg] = T2[neg][:, [1, 0, 2, 3]]
+    w.V, w.T = V2, T2
+    w.parent = np.tile(w.parent, 8)
+    w.err = np.concatenate([w.err, np.maximum(w.err[eu], w.err[ev])])
+    w.dirty = np.ones(len(T2), dtype=bool)
+    w.splits["refined"] = w.splits.get("refined", 0) + len(T)
+    w.changed()
 
 
 def _round(w: _Work, signature: tuple, bound: float, rng, moved: np.ndarray) -> np.ndarray:
