@@ -692,10 +692,14 @@ class ImproveConfig:
             the sum of the moves' bounds (:func:`holowarp.stages.improve._remeasure_budget`).
         thin_fraction: a mesh in which more than this share of the tets have all four
             vertices on the boundary after the rounds (its parts are about one tet thick:
-            the quality suite's plate 0.57, its other objects at most 0.06) has no interior
-            that flips and smoothing could use; it is red-refined once (every tet into
-            eight, the surface unchanged) and improved again, within the same surface bound
-            of the input. ``None``: never.
+            the quality suite's plate 0.57, its other objects at most 0.06, lego 0.26) has no
+            interior that flips and smoothing could use; it is red-refined once (every tet
+            into eight, the surface unchanged) and improved again, within the same surface
+            bound of the input, and the refined mesh is kept only if neither its worst nor
+            its mean quality is lower. ``None``: never. 0.4 lies between lego and the plate:
+            at 0.25 lego was refined from 10.5k to 84k tets (worst angle 4.5° instead of
+            2.1°, mean 50.5° instead of 47.0°), eight times the simulation's work for a mesh
+            whose parts are several tets thick.
         thin_boundary_threshold: ``boundary_threshold`` of the rounds after that refinement:
             nearly every vertex is then on the boundary, so the surface budget is spent on
             every tet below it, not only the worst (on the plate: mean minimum dihedral
@@ -737,7 +741,7 @@ class ImproveConfig:
     hausdorff_samples_per_face: int = 8
     hausdorff_margin: float = 1.2
     remeasure_budget: bool = True
-    thin_fraction: float | None = 0.25
+    thin_fraction: float | None = 0.4
     thin_boundary_threshold: float = 0.7
     refit_steps: int = 2500
 

@@ -128,6 +128,7 @@ def main(argv=None) -> int:
         "vertices_smoothed": info["vertices_smoothed"],
         "surface_hausdorff_mean_edges": info["surface_hausdorff_mean_edges"],
         "rounds": info["rounds"],
+        "refinement": info["refinement"],
         "peak_rss_mb": round(peak_rss_mb(), 1),
     }
     if args.json:

@@ -1099,15 +1099,24 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
     refinement = None
     share = _thin_share(w)
     if cfg.thin_fraction is not None and share > cfg.thin_fraction:
-        tets_before = len(w.T)
+        tets_before, q_before = len(w.T), w.quality()
+        saved = (w.V, w.T, w.parent, w.err, dict(w.counts), dict(w.splits), moved)
         _red_refine(w)
         w.cfg = replace(cfg, boundary_threshold=max(cfg.boundary_threshold, cfg.thin_boundary_threshold))
         more, moved = _rounds(w, signature, bound, ref, rng, np.r_[moved, np.zeros(len(w.V) - len(moved), bool)],
                               progress)
         w.cfg = cfg
         rounds += more
+        q = w.quality()
+        # Kept only if it lowers neither the worst tet nor the mean: refinement is for meshes
+        # that the rounds could not improve from inside, not a second lottery on the worst.
+        kept = bool(q.min() >= q_before.min() and q.mean() >= q_before.mean())
+        if not kept:
+            w.V, w.T, w.parent, w.err, w.counts, w.splits, moved = saved
+            w.dirty = np.zeros(len(w.T), dtype=bool)
+            w.changed()
         refinement = {"thin_fraction": share, "tets_before": tets_before, "tets_after_refinement": 8 * tets_before,
-                      "rounds": more}
+                      "rounds": more, "kept": kept}
     out, _ = TetMesh(w.V, w.T, validate=False).remove_unused_vertices()
     info = _report(w, mesh, out, before, L, signature, int(moved.sum()))
     info.update(rounds=rounds, refinement=refinement, seconds=time.perf_counter() - t0)
