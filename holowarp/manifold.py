@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from holowarp.config import kept_components
-from holowarp.tetmesh import TET_EDGES, TET_FACES, TetMesh
+from holowarp.tetmesh import TET_EDGE_FACES, TET_EDGES, TET_FACES, TetMesh
 
 __all__ = ["restore_until_manifold", "repair_manifold", "thin_simple", "simple_tets", "vertex_to_tets", "fans"]
 
@@ -92,11 +92,6 @@ def restore_until_manifold(
     return keep, restored
 
 
-# For each local edge of TET_EDGES, the two local faces (TET_FACES rows) that contain it: the
-# faces opposite the tet's other two vertices.
-_EDGE_FACES = np.array([[k for k in range(4) if k not in e] for e in TET_EDGES.tolist()], dtype=np.int64)
-
-
 def simple_tets(tets: np.ndarray, keep: np.ndarray, adj: np.ndarray, which: np.ndarray) -> np.ndarray:
     """Which of the kept tets ``which`` (K,) are *simple*: removing one alone from the kept
     set leaves a set of the same topology (components, tunnels, cavities).
@@ -130,7 +125,7 @@ def simple_tets(tets: np.ndarray, keep: np.ndarray, adj: np.ndarray, which: np.n
     tk = te[:, :, 0].astype(np.int64) * n + te[:, :, 1]
     pos = np.minimum(np.searchsorted(keys, tk), len(keys) - 1)
     used = np.where(keys[pos] == tk, counts[pos], 0) > 1
-    in_face_e = inner[:, _EDGE_FACES].any(axis=2)  # [K, 6]
+    in_face_e = inner[:, TET_EDGE_FACES].any(axis=2)  # [K, 6]
     return ok & (~used | in_face_e).all(axis=1)
 
 

@@ -36,6 +36,7 @@ from holowarp.errors import InputError
 __all__ = [
     "TET_FACES",
     "TET_EDGES",
+    "TET_EDGE_FACES",
     "TetMesh",
     "TetMeshError",
     "tetrahedralize_surface",
@@ -48,7 +49,7 @@ TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int6
 #: The six local edges of a tet, and for each the local pair of faces that meet along it
 #: (the faces opposite the two vertices NOT on the edge).
 TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
-_EDGE_OPPOSITE = np.array([[2, 3], [1, 3], [1, 2], [0, 3], [0, 2], [0, 1]], dtype=np.int64)
+TET_EDGE_FACES = np.array([[2, 3], [1, 3], [1, 2], [0, 3], [0, 2], [0, 1]], dtype=np.int64)
 
 class TetMeshError(InputError):
     """Invalid tetrahedral mesh data (shapes, indices, non-finite coordinates)."""
@@ -454,8 +455,8 @@ class TetMesh:
         ``TET_EDGES[k]``; nan for a degenerate tet (a face of zero area)."""
         n, nn = self._face_area_vectors
         with np.errstate(divide="ignore", invalid="ignore"):
-            cosang = -np.einsum("mek,mek->me", n[:, _EDGE_OPPOSITE[:, 0]], n[:, _EDGE_OPPOSITE[:, 1]]) / (
-                nn[:, _EDGE_OPPOSITE[:, 0]] * nn[:, _EDGE_OPPOSITE[:, 1]]
+            cosang = -np.einsum("mek,mek->me", n[:, TET_EDGE_FACES[:, 0]], n[:, TET_EDGE_FACES[:, 1]]) / (
+                nn[:, TET_EDGE_FACES[:, 0]] * nn[:, TET_EDGE_FACES[:, 1]]
             )
         return np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
 

@@ -88,7 +88,7 @@ from dataclasses import replace
 import numpy as np
 
 from holowarp.config import ETA_HISTOGRAM_EDGES, QUALITY_MEASURES, ImproveConfig
-from holowarp.tetmesh import TET_EDGES, TET_FACES, TetMesh
+from holowarp.tetmesh import TET_EDGE_FACES, TET_EDGES, TET_FACES, TetMesh
 
 __all__ = [
     "ImproveConfig",
@@ -110,8 +110,6 @@ _SIN_REGULAR = 2.0 * math.sqrt(2.0) / 3.0
 _EDGE_PERM = np.array(
     [[0, 1, 2, 3], [0, 2, 3, 1], [0, 3, 1, 2], [1, 2, 0, 3], [1, 3, 2, 0], [2, 3, 0, 1]], dtype=np.int64
 )
-# Faces meeting at each local edge (the faces opposite the two vertices off the edge).
-_EDGE_FACES = np.array([[2, 3], [1, 3], [1, 2], [0, 3], [0, 2], [0, 1]], dtype=np.int64)
 
 
 # ---------------------------------------------------------------------------- quality
@@ -126,7 +124,7 @@ def _quality_of_points(P: np.ndarray, mode: int) -> np.ndarray:
     if mode != 1:
         f = P[:, TET_FACES]  # [K, 4, 3, 3]
         n = np.linalg.norm(np.cross(f[:, :, 1] - f[:, :, 0], f[:, :, 2] - f[:, :, 0]), axis=2)  # [K, 4]
-        den = n[:, _EDGE_FACES[:, 0]] * n[:, _EDGE_FACES[:, 1]]
+        den = n[:, TET_EDGE_FACES[:, 0]] * n[:, TET_EDGE_FACES[:, 1]]
         with np.errstate(divide="ignore", invalid="ignore"):
             s = np.where(den > 0, vol6[:, None] * np.sqrt(l2) / den, 0.0)
         q = s.min(axis=1) / _SIN_REGULAR
