@@ -8,18 +8,22 @@ message instead of deep inside a kernel launch.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
+from concurrent.futures import ThreadPoolExecutor
 import sys
 import tempfile
 
 from holowarp.errors import InputError
 
 __all__ = ["DeviceError", "resolve_device", "init_warp", "cpu_threads", "set_cpu_threads", "THREADS_ENV", "live_runs",
-           "registered_run"]
+           "registered_run", "run_chunks"]
 
 #: Environment variable that sets how many CPU threads holowarp's Warp kernel drivers use.
 THREADS_ENV = "HOLOWARP_THREADS"
 _cpu_threads: int | None = None
+_POOL: ThreadPoolExecutor | None = None
+_POOL_SIZE = 0
 
 #: What Warp's native library prints to stderr at start-up on a machine without a CUDA
 #: driver. On such a machine every run is a CPU run and the line is noise; a CUDA request
@@ -207,3 +211,42 @@ def set_cpu_threads(n: int | None) -> None:
         raise DeviceError(f"threads must be >= 1, got {n}")
     _cpu_threads = None if n is None else int(n)
     _shared = None
+
+
+def run_chunks(fn, chunks, *, kernel=None, device: str = "cpu") -> list:
+    """``[fn(*chunk) for chunk in chunks]``, run on :func:`cpu_threads` threads when there
+    are several (Warp releases the GIL while a CPU kernel runs); results in chunk order.
+
+    The calling thread works too: it and ``cpu_threads() - 1`` pool threads take the chunks
+    in order from one shared counter, so a call costs one hand-over per helper rather than
+    one future per chunk (about 70 us against 115 us for two chunks), which the simulator's
+    short parallel sweeps feel. ``kernel``'s module is loaded first, so no two threads ever
+    compile or load it. The rasterisers' drivers and the simulator share the pool.
+    """
+    global _POOL, _POOL_SIZE
+    n = min(cpu_threads(), len(chunks))
+    if n <= 1:
+        return [fn(*c) for c in chunks]
+    if kernel is not None:
+        kernel.module.load(init_warp().get_device(device))
+    helpers = cpu_threads() - 1
+    if _POOL is None or _POOL_SIZE != helpers:
+        if _POOL is not None:
+            _POOL.shutdown(wait=True)
+        _POOL, _POOL_SIZE = ThreadPoolExecutor(max_workers=helpers, thread_name_prefix="holowarp-kernel"), helpers
+    results = [None] * len(chunks)
+    counter = itertools.count()  # next() on it is atomic under the GIL
+
+    def work():
+        for k in iter(counter.__next__, None):
+            if k >= len(chunks):
+                return
+            results[k] = fn(*chunks[k])
+
+    futures = [_POOL.submit(work) for _ in range(n - 1)]
+    try:
+        work()
+    finally:
+        for f in futures:
+            f.result()
+    return results

@@ -40,7 +40,9 @@ differences, which lose the digits of small substeps: its free fall drifts from 
 substeps on), ``speedup_at_newton_best_accuracy`` compares with holowarp's cheapest setting
 at least as accurate as Newton's best.
 On a CUDA device the default sizes add 500k tets. The JSON also states the machine's load
-average while it ran.
+average while it ran and, on the CPU, ``cpu_threads``: the threads holowarp's sweeps of a
+contact-free mesh of at least 2,048 particles use (``$HOLOWARP_THREADS``, default the cores
+available; :func:`holowarp.sim.solver.sweep_phases`). Newton's CPU launches run on one.
 """
 
 from __future__ import annotations
@@ -445,7 +447,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-newton", action="store_true", help="skip the Newton SolverVBD reference")
     args = ap.parse_args(argv)
 
-    from holowarp.device import DeviceError, resolve_device
+    from holowarp.device import DeviceError, cpu_threads, resolve_device
 
     try:
         device = resolve_device(args.device)
@@ -480,7 +482,8 @@ def main(argv=None) -> int:
            "target_speedup": TARGET_SPEEDUP,
            "newton": "SolverVBD (add_soft_mesh), each engine at its own cheapest accurate setting" if use_newton
            else "not run (newton not installed or --no-newton)",
-           "load_average": {"start": load[0], "end": load[-1]}, "results": results}
+           "load_average": {"start": load[0], "end": load[-1]},
+           "cpu_threads": cpu_threads() if not device.startswith("cuda") else None, "results": results}
     if not device.startswith("cuda"):
         out["cuda_500k"] = "not measured: run with --device cuda on a machine with a GPU"
     print(json.dumps(out, indent=None if args.json else 2))

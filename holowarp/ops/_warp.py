@@ -7,17 +7,12 @@ kernels views of torch storage instead of copies. Warp names devices as torch do
 from __future__ import annotations
 
 import contextlib
-from concurrent.futures import ThreadPoolExecutor
-
 import torch
 import warp as wp
 
-from holowarp.device import cpu_threads, init_warp
+from holowarp.device import cpu_threads, init_warp, run_chunks
 
 __all__ = ["wp_device", "to_wp", "torch_stream", "thread_chunks", "run_chunks", "CPU_PIECES"]
-
-_POOL: ThreadPoolExecutor | None = None
-_POOL_SIZE = 0
 
 init_warp()
 
@@ -67,20 +62,3 @@ def thread_chunks(total: int, device: str, *, align: int = 256, always: bool = F
     edges = [round(blocks * k / pieces) * align for k in range(pieces + 1)]
     edges[-1] = total
     return [(a, b - a) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-
-
-def run_chunks(fn, chunks, *, kernel=None, device: str = "cpu") -> list:
-    """``[fn(offset, count) for each chunk]``, run on the CPU thread pool when there are
-    several (Warp releases the GIL while a CPU kernel runs); results in chunk order.
-    ``kernel``'s module is loaded first, so no two threads ever compile or load it."""
-    global _POOL, _POOL_SIZE
-    n = cpu_threads()
-    if len(chunks) == 1 or n == 1:
-        return [fn(*c) for c in chunks]
-    if kernel is not None:
-        kernel.module.load(wp.get_device(device))
-    if _POOL is None or _POOL_SIZE != n:
-        if _POOL is not None:
-            _POOL.shutdown(wait=True)
-        _POOL, _POOL_SIZE = ThreadPoolExecutor(max_workers=n, thread_name_prefix="holowarp-kernel"), n
-    return [f.result() for f in [_POOL.submit(fn, *c) for c in chunks]]
