@@ -7,6 +7,7 @@ kernels views of torch storage instead of copies. Warp names devices as torch do
 from __future__ import annotations
 
 import contextlib
+
 import torch
 import warp as wp
 
