@@ -1173,14 +1173,16 @@ def vbd_penetration(
 def sim_tet_stats(
     q: wp.array(dtype=wp.vec3),  # [N]
     tet_indices: wp.array2d(dtype=wp.int32),  # [M, 4]
-    stats: wp.array(dtype=float),  # [2] += (inverted count, total signed volume m^3)
+    stats: wp.array(dtype=wp.float64),  # [2] += (inverted count, total signed volume m^3)
 ):
+    # float64 sums: 200k float32 volumes summed in float32 drift by ~1e-3 of the total,
+    # which would read as a volume change of the body
     t = wp.tid()
     x0 = q[tet_indices[t, 0]]
     vol = wp.dot(q[tet_indices[t, 1]] - x0, wp.cross(q[tet_indices[t, 2]] - x0, q[tet_indices[t, 3]] - x0)) / 6.0
     if vol <= 0.0:
-        wp.atomic_add(stats, 0, 1.0)
-    wp.atomic_add(stats, 1, vol)
+        wp.atomic_add(stats, 0, wp.float64(1.0))
+    wp.atomic_add(stats, 1, wp.float64(vol))
 
 
 @wp.kernel

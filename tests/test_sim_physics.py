@@ -498,7 +498,7 @@ def test_penetration_is_the_depth_inside_the_other_body():
 
 
 # ------------------------------------------------------------------ mechanics
-def test_rigid_motion_gives_zero_force_and_keeps_momentum(rng):
+def test_rigid_motion_gives_zero_force_and_keeps_momentum(rng, record_property):
     """A rotated and translated rest shape has zero elastic force and energy; at zero
     gravity a translating body stays exactly rigid and a spinning one keeps its linear
     momentum, loses no more angular momentum than implicit Euler does and deforms only by
@@ -515,6 +515,7 @@ def test_rigid_motion_gives_zero_force_and_keeps_momentum(rng):
     s0.particle_q.assign(x.astype(np.float32))
     f, e = sol.elastic_forces(s0)
     fs = m.tet_mu_host.max() * np.ptp(m.rest_positions, axis=0).max() ** 2  # a force of the material's scale
+    record_property("rigid_force_rel", float(np.abs(f).max() / fs))
     assert np.abs(f).max() < 1e-4 * fs
     assert abs(e) < 1e-6 * fs * 0.1
 
@@ -551,7 +552,7 @@ def test_rigid_motion_gives_zero_force_and_keeps_momentum(rng):
 
 
 @pytest.mark.parametrize("integrator, tol", [("euler", 0.01), ("bdf2", 1e-4)])
-def test_free_fall_follows_parabola_before_contact(integrator, tol):
+def test_free_fall_follows_parabola_before_contact(integrator, tol, record_property):
     """The centre of mass follows z0 - g t^2 / 2 until contact: to 1 % of the drop height by
     implicit Euler, to 0.01 % by BDF2 (exact for a parabola but for its first, implicit
     Euler substep: a lag of g h^2 / 2).
@@ -573,11 +574,12 @@ def test_free_fall_follows_parabola_before_contact(integrator, tol):
     assert n_free >= 10
     assert r["plan"].integrator == integrator
     err = np.abs(r["com"][free, 2] - (z0 - 0.5 * GRAVITY * t[free] ** 2)).max() / H
+    record_property("free_fall_rel_error", float(err))
     assert err < tol, err
     np.testing.assert_allclose(r["com"][free, :2], 0.0, atol=1e-6)  # straight down
 
 
-def test_hanging_column_sags_by_rho_g_h2_over_2e():
+def test_hanging_column_sags_by_rho_g_h2_over_2e(record_property):
     """A bar of height H clamped at its top stretches under its own weight by
     rho g H^2 / (2 E) (1D elasticity), within 10 % on a 3 x 3 x 30 cell mesh (paper settings:
     1 substep, 16 iterations; 2 s with 5 /s damping to come to rest)."""
@@ -591,11 +593,12 @@ def test_hanging_column_sags_by_rho_g_h2_over_2e():
     bottom = np.abs(mesh.vertices[:, 2]) < 1e-9
     sag = -s.positions()[bottom, 2].mean()
     exact = rho * GRAVITY * H**2 / (2 * E)
+    record_property("sag_rel_error", float(sag / exact - 1))
     assert abs(sag / exact - 1) < 0.10, (sag, exact)
     assert np.abs(s.velocities()).max() < 1e-2  # at rest
 
 
-def test_uniaxial_compression_stress_over_strain_equals_youngs_modulus():
+def test_uniaxial_compression_stress_over_strain_equals_youngs_modulus(record_property):
     """A block between a frictionless ground and a frictionless plate pressed down by 1 %:
     the plate force over the area, divided by the strain, is E within 5 % (paper settings)."""
     L, E, nu, eps = 0.1, 1e5, 0.3, 0.01
@@ -610,6 +613,7 @@ def test_uniaxial_compression_stress_over_strain_equals_youngs_modulus():
     f_plate = -np.mean([f[1, 2] for f in forces[-15:]])
     strain = 1 - np.ptp(s.positions()[:, 2]) / L
     assert strain == pytest.approx(eps, rel=1e-3)
+    record_property("uniaxial_rel_error", float(f_plate / (L * L) / strain / E - 1))
     assert abs(f_plate / (L * L) / strain / E - 1) < 0.05
     assert np.mean([f[0, 2] for f in forces[-15:]]) == pytest.approx(f_plate, rel=0.02)  # the ground carries it
 
@@ -631,7 +635,7 @@ def test_sliding_block_stops_at_coulomb_distance():
     assert np.abs(s.velocities()).max() < 1e-3
 
 
-def test_drop_keeps_volume_within_two_percent_at_nu_045():
+def test_drop_keeps_volume_within_two_percent_at_nu_045(record_property):
     """The drop scene as shipped (paper settings, E = 200 kPa, nu = 0.45)."""
     sc = load_scene("drop")
     assert (sc.material.poissons_ratio, sc.sim.substeps, sc.sim.iterations) == (0.45, 1, 16)
@@ -639,12 +643,13 @@ def test_drop_keeps_volume_within_two_percent_at_nu_045():
     r = run_scene(sc, mesh)
     ratio = r["volume"] / r["model"].rest_volume()
     assert r["frames"][:, :, 2].min() > -1e-6  # never below the ground
+    record_property("volume_max_rel_change", float(np.abs(ratio - 1).max()))
     assert np.abs(ratio - 1).max() < 0.02, np.abs(ratio - 1).max()
     assert r["com"][-1, 2] == pytest.approx(0.1, abs=0.003)  # came to rest on the ground
     assert r["plan"].softened_tets == 0
 
 
-def test_trajectory_converges_with_iterations():
+def test_trajectory_converges_with_iterations(record_property):
     """At 1 substep the drop's trajectory approaches the converged implicit Euler one as
     iterations grow: the largest position difference to the 256-iteration run shrinks
     with every doubling of 4 -> 16 -> 64 and is within 2 mm (1 % of the cube) at 64."""
@@ -654,6 +659,7 @@ def test_trajectory_converges_with_iterations():
         sc = _scene("drop", **{"sim.iterations": it, "sim.duration": 0.5})
         runs[it] = run_scene(sc, mesh, measure_penetration=False)["frames"]
     err = [np.abs(runs[it] - runs[256]).max() for it in (4, 16, 64)]
+    record_property("max_diff_to_256_iterations_at_4_16_64", [float(e) for e in err])
     assert err[0] > err[1] > err[2], err
     assert err[2] < 0.002, err
 
@@ -741,7 +747,7 @@ def _jittered_cube(rng, cells=5, jitter=0.4):
 
 
 @pytest.mark.parametrize("E, nu", [(1e4, 0.0), (1e4, 0.45), (1e7, 0.0), (1e7, 0.45)])
-def test_paper_settings_are_stable_for_any_stiffness(rng, E, nu):
+def test_paper_settings_are_stable_for_any_stiffness(rng, E, nu, record_property):
     """dt = 1/60 s, 1 substep, 16 iterations: dropping a sliver-laden cube (jittered 625-tet
     mesh) never gains energy (total mechanical energy stays at or below its start), stays
     finite and softens no tet, from 10 kPa to 10 MPa and nu from 0 to 0.45."""
@@ -755,6 +761,7 @@ def test_paper_settings_are_stable_for_any_stiffness(rng, E, nu):
     e0 = _mechanical_energy(m, m.state())
     s, energies = _run(m, sol, 60, record=lambda st: _mechanical_energy(m, st))
     assert np.all(np.isfinite(s.positions()))
+    record_property("max_energy_over_start", float(max(energies) / e0))
     assert max(energies) <= e0 * 1.001, (max(energies), e0)
     assert s.positions()[:, 2].min() > -1e-6
 
@@ -799,7 +806,7 @@ def test_non_finite_state_stops_with_the_step_named():
 
 
 # ------------------------------------------------------------------ contact
-def test_stacked_blocks_dropped_come_to_rest_on_each_other():
+def test_stacked_blocks_dropped_come_to_rest_on_each_other(record_property):
     """Two blocks, one 1 cm above the other, dropped together 0.2 m (paper settings): the
     upper one lands on the lower one and both rest, stacked, with at most 1 % of the block
     size of penetration at any frame."""
@@ -810,6 +817,7 @@ def test_stacked_blocks_dropped_come_to_rest_on_each_other():
     m, x = r["model"], r["frames"]
     size = 0.2 / 1.05 * 0.5  # block height after placement, m
     nl = lower.num_vertices
+    record_property("max_penetration_over_block_size", float(r["penetration"].max() / size))
     assert r["penetration"].max() < 0.01 * size
     assert x[-1, :nl, 2].min() == pytest.approx(0.0, abs=1e-6)
     gap = x[-1, nl:, 2].min() - x[-1, :nl, 2].max()
@@ -819,7 +827,7 @@ def test_stacked_blocks_dropped_come_to_rest_on_each_other():
     assert np.abs(v).max() < 0.01
 
 
-def test_disjoint_pair_under_compression_separates_and_one_block_stays_whole():
+def test_disjoint_pair_under_compression_separates_and_one_block_stays_whole(record_property):
     """Two cubes side by side in one mesh (two face-connected pieces, as TetSphere's union of
     spheres) squeezed to half height between greased plates (friction 0.1) and released:
     contact pushes them apart (components_end 2) without interpenetration; the same shape
@@ -833,6 +841,7 @@ def test_disjoint_pair_under_compression_separates_and_one_block_stays_whole():
         r = run_scene(sc, mesh)
         placed = mesh.with_vertices(r["model"].rest_positions)
         ends[label] = pieces_apart(placed, r["frames"][-1])[0]
+        record_property(f"max_penetration_over_cube_side_{label}", float(r["penetration"].max() / 0.1))
         assert r["penetration"].max() < 0.01 * 0.1  # 1 % of a cube's side
     assert ends == {"two": 2, "one": 1}
 

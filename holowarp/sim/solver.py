@@ -297,7 +297,7 @@ class SolverVBDNeoHookean:
         self._inertia = wp.zeros(N, dtype=wp.vec3, device=dev)
         self._lag = wp.zeros(N, dtype=wp.vec3, device=dev)
         self._surf_force = wp.zeros((N, S), dtype=wp.vec3, device=dev)
-        self._stats = wp.zeros(2, dtype=float, device=dev)
+        self._stats = wp.zeros(2, dtype=wp.float64, device=dev)
         C = max(model.component_count, 1)
         self._depth_cs = wp.zeros((C, S), dtype=float, device=dev)
         self._shift = wp.zeros(C, dtype=wp.vec3, device=dev)
