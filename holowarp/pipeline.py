@@ -27,7 +27,8 @@ from holowarp.runstate import Checkpoint, HistoryLog, Phase, RunState, check_res
 from holowarp.stages.gaussian_init import train_gs2d
 from holowarp.stages.geometry import GeometryState, run_geometry_block
 from holowarp.stages.topology import (EmptyEvidence, GaussianOptimizers, ViewTensors, after_first_prune,
-                                      gaussian_step, init_model_from_surfels, prune, prune_message)
+                                      gaussian_step, init_model_from_surfels, prune, prune_message,
+                                      refine_near_surface)
 from holowarp.tetgs import TetGaussians
 
 __all__ = ["ReconstructionError", "reconstruct"]
@@ -52,6 +53,10 @@ def reconstruct(dataset_path=None, out_dir="runs/holowarp", *, config: ReconConf
     t_start = time.perf_counter()
     device = resolve_device(device)
     config.schedule.validate()
+    t = config.topology
+    if t.refine_rings > 0 and t.refine_at_prune >= len(config.schedule.prune_at):
+        raise ValueError(f"topology.refine_at_prune {t.refine_at_prune}: the schedule has only "
+                         f"{len(config.schedule.prune_at)} prune(s)")
     out_dir = check_output_dir(out_dir)
     ckpt = Checkpoint.load(out_dir)
     check_resume(out_dir, ckpt, config.to_dict(), dataset_path, resume=resume)
@@ -172,6 +177,12 @@ class _Run:
             self.evidence = EmptyEvidence(self.out / "stage0" / "gaussians.ply", self.ds, self.cfg.topology,
                                           device=self.device)
         info = prune(self.model, self.cfg.topology, evidence=self.evidence(self.model.mesh()) if self.evidence else None)
+        if self.cfg.schedule.prune_at.index(ev.iteration) == self.cfg.topology.refine_at_prune:
+            refined = refine_near_surface(self.model, self.cfg.topology, self.ds)
+            if refined is not None:
+                info["refined"] = refined
+                say(f"refined the {refined['band']} tets near the surface to a longest edge of "
+                    f"{refined['target']:.4f}: {refined['tets_before']} -> {refined['tets_after']} tets", self.progress)
         if ev.first:
             after_first_prune(self.model)
         info["iteration"] = ev.iteration

@@ -35,6 +35,12 @@ def build_parser():
                    help="multiply every iteration count of the preset by F (> 0)")
     p.add_argument("--edge-length", type=float, default=None, metavar="FAC",
                    help="fTetWild edge length / bbox diagonal, in (0, 1) (the resolution knob)")
+    p.add_argument("--refine", choices=("off", "band", "silhouette"), default=None,
+                   help="after the last prune, bisect the tets next to the surface so the last mesh block works finer: "
+                        "all of them (band) or those that reach outside the masks' visual hull (silhouette); "
+                        "default: the preset's (fast: band at 0.85, paper: off)")
+    p.add_argument("--refine-factor", type=float, default=None, metavar="F",
+                   help="with --refine: bisect until the longest edge is F x the marked tets' median, in (0, 1]")
     p.add_argument("--seed", type=int, default=None, help="random seed (default: the preset's)")
     p.add_argument("--test-every", type=int, default=None, metavar="N",
                    help="without a test split in the dataset, hold out every N-th view for the test metrics (default 10)")
@@ -79,6 +85,23 @@ def config_from_args(args):
         if not 0 < args.edge_length < 1:
             cli.fail(f"--edge-length {args.edge_length}: must lie in (0, 1)")
         cfg = replace(cfg, tet_init=replace(cfg.tet_init, edge_length_fac=args.edge_length))
+    if args.refine_factor is not None and not 0 < args.refine_factor <= 1:
+        cli.fail(f"--refine-factor {args.refine_factor}: must lie in (0, 1]")
+    if args.refine is not None or args.refine_factor is not None:
+        topo = cfg.topology
+        if args.refine == "off":
+            if args.refine_factor is not None:
+                cli.fail("--refine-factor: not with --refine off")
+            topo = replace(topo, refine_rings=0)
+        else:
+            if args.refine is not None:
+                topo = replace(topo, refine_where=args.refine, refine_rings=max(topo.refine_rings, 1),
+                               refine_at_prune=len(cfg.schedule.prune_at) - 1)
+            elif topo.refine_rings == 0:
+                cli.fail("--refine-factor: the preset does not refine; add --refine band or --refine silhouette")
+            if args.refine_factor is not None:
+                topo = replace(topo, refine_factor=args.refine_factor)
+        cfg = replace(cfg, topology=topo)
     if args.seed is not None:
         cfg = replace(cfg, seed=args.seed)
     if args.test_every is not None:

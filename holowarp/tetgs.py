@@ -235,6 +235,45 @@ class TetGaussians:
             self.quats = P(self.quats.data[parent].clone())
             self.log_scales = P((self.log_scales.data[parent] + torch.log(ratio.clamp_min(1e-6))[:, None]).contiguous())
 
+    def apply_refine(self, vertices, tets, parent, ends) -> None:
+        """Follow a refinement by bisection (:func:`holowarp.refine.bisect_longest_edges`):
+        ``vertices`` (N', 3) keep this model's N first, the new ones being midpoints of
+        ``ends`` (N' - N, 2) in creation order; ``tets`` (K, 4) with input ``parent`` (K,).
+
+        phi is interpolated linearly at the midpoints, so the piecewise-linear field (and its
+        zero level set) is unchanged; each child surfel takes its parent's colour, rotation
+        and opacity, with scales shrunk by the ratio of the tets' mean radii (as
+        :meth:`apply_improve` does). Adam moments are not carried: the optimisers are rebuilt
+        after every topology change (:class:`holowarp.stages.topology.GaussianOptimizers`).
+        """
+        x = torch.as_tensor(np.asarray(vertices), dtype=torch.float32, device=self.device)
+        ends = np.asarray(ends, dtype=np.int64).reshape(-1, 2)
+        N = self.num_vertices
+        if x.shape != (N + len(ends), 3) or (len(ends) and ends.max() >= N + len(ends)):
+            raise ValueError(f"apply_refine: {x.shape[0]} vertices for {N} old + {len(ends)} midpoints")
+        parent = torch.as_tensor(np.asarray(parent, dtype=np.int64), device=self.device)
+        tets = torch.as_tensor(np.asarray(tets, dtype=np.int64), device=self.device)
+        if parent.shape != (tets.shape[0],) or (tets.shape[0] and (parent.min() < 0 or parent.max() >= self.num_tets)):
+            raise ValueError(f"apply_refine: parent must be ({tets.shape[0]},) ids of the model's {self.num_tets} tets")
+        phi = np.concatenate([self.phi.detach().cpu().double().numpy(), np.zeros(len(ends))])
+        # A midpoint may sit on an edge to an earlier midpoint: sweep until every value is
+        # final (as many sweeps as the deepest chain, a few per refinement round).
+        for _ in range(len(ends) + 1):
+            mid = 0.5 * (phi[ends[:, 0]] + phi[ends[:, 1]])
+            if np.array_equal(mid, phi[N:]):
+                break
+            phi[N:] = mid
+        P = torch.nn.Parameter
+        with torch.no_grad():
+            ratio = tet_mean_radius(x, tets) / tet_mean_radius(self.vertices.data, self.tets)[parent].clamp_min(1e-12)
+            self.phi = P(torch.as_tensor(phi, dtype=torch.float32, device=self.device))
+            self.vertices = P(x)
+            self.tets = tets
+            self.opacity_logit = P(self.opacity_logit.data[parent].clone())
+            self.color_logit = P(self.color_logit.data[parent].clone())
+            self.quats = P(self.quats.data[parent].clone())
+            self.log_scales = P((self.log_scales.data[parent] + torch.log(ratio.clamp_min(1e-6))[:, None]).contiguous())
+
     # ------------------------------------------------------------------ (de)serialisation
     _TENSORS = ("vertices", "tets", "phi", "kappa", "opacity_logit", "color_logit", "quats", "log_scales")
 

@@ -67,6 +67,26 @@ def test_tiny_reconstruction_is_one_manifold_genus_one_inversion_free_mesh(tiny_
     assert {p.name for p in (out / "previews").iterdir()} >= {"cutaway_components.png", "losses.png"}
 
 
+def test_the_fast_preset_refines_before_its_last_mesh_block(tiny_run):
+    """The refinement after the last prune (TopologyConfig.refine_*, on in the fast preset)
+    feeds the last block a finer conforming mesh: more tets, the same topology."""
+    out, report = tiny_run
+    last = report["prunes"][-1]
+    refined = last["refined"]
+    assert "refined" not in report["prunes"][0]
+    assert refined["band"] > 0 and refined["tets_after"] > refined["tets_before"] == last["tets_after"]
+    assert report["tets_final"] > last["tets_after"]
+    assert (report["components"], report["manifold"], report["genus"], report["inverted_ratio"]) == (1, True, 1, 0.0)
+
+
+def test_a_refinement_after_a_missing_prune_is_refused(torus_dataset, tmp_path):
+    cfg = tiny_config()
+    cfg = replace(cfg, topology=replace(cfg.topology, refine_at_prune=len(cfg.schedule.prune_at)))
+    with pytest.raises(ValueError, match="refine_at_prune"):
+        reconstruct(torus_dataset, tmp_path / "run", config=cfg, progress=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_report_accounts_for_every_scheduled_event(tiny_run):
     out, report = tiny_run
     sch = tiny_config().schedule
@@ -77,10 +97,13 @@ def test_report_accounts_for_every_scheduled_event(tiny_run):
     assert st["geometry"]["iterations"] == sch.total_mesh_iters
     assert [p["iteration"] for p in report["prunes"]] == list(sch.prune_at)
     assert [b["at"] for b in report["geometry_blocks"]] == list(sch.mesh_blocks_at)
-    # Tet counts only fall through the prunes, and cleanup starts from the last one.
+    # Tet counts only fall through the prunes (each starts where the last one, and its
+    # refinement, left off), and cleanup starts from the last prune's refined mesh.
     sizes = [report["tets_initial"]] + [p["tets_after"] for p in report["prunes"]]
     assert sizes == sorted(sizes, reverse=True)
-    assert report["cleanup"]["tets_before"] == report["prunes"][-1]["tets_after"]
+    ends = [p.get("refined", {}).get("tets_after", p["tets_after"]) for p in report["prunes"]]
+    assert [p["tets_before"] for p in report["prunes"]] == [report["tets_initial"]] + ends[:-1]
+    assert report["cleanup"]["tets_before"] == ends[-1]
     # The element improvement starts from cleanup's mesh and ends with the reported one.
     imp = report["improve"]
     assert imp["before"]["tets"] == report["cleanup"]["tets_after"] and imp["after"]["tets"] == report["tets_final"]

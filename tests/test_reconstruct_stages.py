@@ -4,6 +4,7 @@ one geometry block, on a small analytic sphere scene."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -67,8 +68,12 @@ def test_fast_preset_scales_every_count_by_one_factor_and_keeps_the_order():
     assert fs.mesh_blocks_at == tuple(round(p * FAST_FACTOR) for p in ps.mesh_blocks_at)
     assert fs.prune_at[0] == fs.topology_until and fs.mesh_blocks_at[0] in fs.prune_at
     assert fast.resolution < paper.resolution
-    # Only numbers differ: same fields, same loss weights.
-    assert fast.topology == paper.topology
+    # Only numbers differ: same fields, same loss weights; fast adds the refinement before
+    # its last mesh block (TopologyConfig.refine_*), which the paper's pipeline has not.
+    assert replace(fast.topology, refine_rings=0, refine_factor=paper.topology.refine_factor,
+                   refine_at_prune=paper.topology.refine_at_prune) == paper.topology
+    assert paper.topology.refine_rings == 0 and fast.topology.refine_rings == 1
+    assert fast.topology.refine_at_prune == len(fs.prune_at) - 1
     assert fast.geometry.lr_start == pytest.approx(paper.geometry.lr_start / FAST_FACTOR)
     with pytest.raises(ValueError, match="preset"):
         preset("slow")

@@ -18,7 +18,11 @@ Pruning (§5) deletes tets with alpha < 0.1 and then vertices no tet uses; if th
 mesh, the largest face-connected component is kept and the rest counted (scene level,
 ``TopologyConfig.min_component``: every component above a size threshold). After the FIRST
 prune the surfel scales are recomputed (0.65 x mean centroid-to-vertex distance) and become
-learnable, and opacities become free parameters initialised from the field.
+learnable, and opacities become free parameters initialised from the field. Before that,
+with ``TopologyConfig.refine_rings`` > 0, the tets near the boundary are bisected
+(:func:`refine_near_surface`): the field is interpolated, so the prune's result is kept as
+it is, and the later prunes and mesh-only blocks then work at the finer size, which the
+initial edge length alone would fix (issues 12 and 16).
 
 The field is initialised SDF-like (method.md leaves this open): ``phi_init="visual_hull"``
 labels each vertex inside/outside the masks' visual hull (:func:`holowarp.carve.inside_hull`)
@@ -42,6 +46,7 @@ from holowarp.tetmesh import TetMesh
 
 __all__ = [
     "refit_appearance",
+    "refine_near_surface",
     "GaussianOptimizers",
     "ViewTensors",
     "EmptyEvidence",
@@ -198,6 +203,34 @@ def init_model_from_surfels(gaussians_ply, dataset, tet_config, config: Topology
     if config.phi_init == "depth_hull":
         maps = surfel_depth_maps(gaussians_ply, dataset, _carve_views(dataset.train_idx, config), device=device)
     return init_model(mesh, dataset, dataset.train_idx, config, seed=seed, device=device, depth_maps=maps)
+
+
+def refine_near_surface(model: TetGaussians, config: TopologyConfig, dataset=None) -> dict | None:
+    """Bisect the tets near the boundary (``config.refine_rings``, ``refine_factor``,
+    ``refine_where``; :mod:`holowarp.refine`), the surfels following
+    (:meth:`TetGaussians.apply_refine`). ``dataset`` (its training masks) is needed by
+    ``refine_where="silhouette"``. Returns None when off, else ``{"band", "target",
+    "tets_before", "tets_after"}`` (``band``: the tets marked; target in scene units).
+    Topology, boundary and field are unchanged by construction."""
+    if config.refine_rings <= 0 or model.num_tets == 0:
+        return None
+    from holowarp.refine import bisect_longest_edges, boundary_band, edge_table
+
+    mesh = model.mesh()
+    band = boundary_band(mesh.tets, mesh.num_vertices, mesh.surface_vertices(), config.refine_rings)
+    if config.refine_where == "silhouette":
+        if dataset is None:
+            raise ValueError("refine_near_surface: refine_where='silhouette' needs the dataset's masks")
+        inside = inside_hull(dataset, mesh.vertices, dataset.train_idx, tolerance=config.hull)
+        band &= ~inside[mesh.tets].all(axis=1)
+        if not band.any():
+            return {"band": 0, "target": 0.0, "tets_before": model.num_tets, "tets_after": model.num_tets}
+    ends, _, length, longest = edge_table(mesh.vertices, mesh.tets)
+    target = float(config.refine_factor * np.median(length[longest[band]]))
+    V, T, parent, new = bisect_longest_edges(mesh.vertices, mesh.tets, band, target)
+    before = model.num_tets
+    model.apply_refine(V, T, parent, new)
+    return {"band": int(band.sum()), "target": target, "tets_before": before, "tets_after": model.num_tets}
 
 
 def after_first_prune(model: TetGaussians) -> None:
