@@ -22,7 +22,7 @@ LAYERS = [
     ("kernels", ["holowarp.kernels"]),
     ("base", ["holowarp.errors", "holowarp.fileio", "holowarp.device", "holowarp.camera", "holowarp.frame",
               "holowarp.config", "holowarp.progress", "holowarp.scenes"]),
-    ("core", ["holowarp.tetmesh", "holowarp.primitives"]),
+    ("core", ["holowarp.tetmesh", "holowarp.primitives", "holowarp.refine"]),
     ("drivers", ["holowarp.ops", "holowarp.sim"]),
     ("io", ["holowarp.surface_io", "holowarp.mesh_io", "holowarp.usd"]),
     ("domain", ["holowarp.data", "holowarp.render_gt", "holowarp.carve", "holowarp.metrics", "holowarp.manifold",
