@@ -221,19 +221,11 @@ class TetGaussians:
         if parent.shape != (tets.shape[0],) or (tets.shape[0] and (parent.min() < 0 or parent.max() >= self.num_tets)):
             raise ValueError(f"apply_improve: parent must be ({tets.shape[0]},) ids of the model's {self.num_tets} tets")
         x = torch.tensor(np.array(mesh.vertices), dtype=torch.float32, device=self.device)
-        P = torch.nn.Parameter
         with torch.no_grad():
-            ratio = tet_mean_radius(x, tets) / tet_mean_radius(self.vertices.data, self.tets)[parent].clamp_min(1e-12)
             phi_t = self.phi.data[self.tets].mean(dim=1)[parent]
             acc = torch.zeros(x.shape[0], device=self.device).index_add_(0, tets.reshape(-1), phi_t.repeat_interleave(4))
             cnt = torch.zeros(x.shape[0], device=self.device).index_add_(0, tets.reshape(-1), torch.ones(tets.numel(), device=self.device))
-            self.phi = P(acc / cnt.clamp_min(1.0))
-            self.vertices = P(x)
-            self.tets = tets
-            self.opacity_logit = P(self.opacity_logit.data[parent].clone())
-            self.color_logit = P(self.color_logit.data[parent].clone())
-            self.quats = P(self.quats.data[parent].clone())
-            self.log_scales = P((self.log_scales.data[parent] + torch.log(ratio.clamp_min(1e-6))[:, None]).contiguous())
+            self._follow_parents(x, tets, parent, acc / cnt.clamp_min(1.0))
 
     def apply_refine(self, vertices, tets, parent, ends) -> None:
         """Follow a refinement by bisection (:func:`holowarp.refine.bisect_longest_edges`):
@@ -263,10 +255,15 @@ class TetGaussians:
             if np.array_equal(mid, phi[N:]):
                 break
             phi[N:] = mid
+        self._follow_parents(x, tets, parent, torch.as_tensor(phi, dtype=torch.float32, device=self.device))
+
+    def _follow_parents(self, x: torch.Tensor, tets: torch.Tensor, parent: torch.Tensor, phi: torch.Tensor) -> None:
+        """Take the mesh (x (N', 3), tets (K, 4)) and field phi (N',); each surfel its parent's
+        (K,) colour, rotation and opacity, its scales times the ratio of the tets' mean radii."""
         P = torch.nn.Parameter
         with torch.no_grad():
             ratio = tet_mean_radius(x, tets) / tet_mean_radius(self.vertices.data, self.tets)[parent].clamp_min(1e-12)
-            self.phi = P(torch.as_tensor(phi, dtype=torch.float32, device=self.device))
+            self.phi = P(phi)
             self.vertices = P(x)
             self.tets = tets
             self.opacity_logit = P(self.opacity_logit.data[parent].clone())
