@@ -397,11 +397,11 @@ class TopologyConfig:
             fraction of the tets it keeps, where the restricted prune keeps more of them
             (``None``: off). The images show one connected object, so a piece that a thin
             part's low opacities detach stays joined to it.
-        refine_rings, refine_factor: after the first prune, the tets within ``refine_rings``
-            vertex rings of the boundary are bisected (:func:`holowarp.refine.bisect_longest_edges`,
-            conforming) until their longest edge is at most ``refine_factor`` times the band's
-            median longest edge, so the later prunes and the mesh-only blocks work finer than
-            the initial edge length (issues 12 and 16; 0 rings: off).
+        refine_rings, refine_factor: after the prune ``refine_at_prune``, the tets within
+            ``refine_rings`` vertex rings of the boundary are bisected
+            (:func:`holowarp.refine.bisect_longest_edges`, conforming) until their longest edge
+            is at most ``refine_factor`` times the band's median longest edge, so what follows
+            works finer than the initial edge length (issues 12 and 16; 0 rings: off).
         refine_at_prune: which prune (0: the first) the refinement follows. Measured on lego
             (real, 128²) and bob (128²), each resumed from one snapshot before the first
             prune: after the first prune, the later prunes work on tets finer than the field

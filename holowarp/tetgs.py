@@ -216,10 +216,8 @@ class TetGaussians:
         with it (flips and smoothing change sizes a little). Vertices are ``mesh``'s; phi (not
         used once opacities are free) is the mean over a vertex's tets of their parent's mean phi.
         """
-        parent = torch.as_tensor(np.asarray(parent, dtype=np.int64), device=self.device)
         tets = torch.tensor(np.array(mesh.tets), dtype=torch.int64, device=self.device)
-        if parent.shape != (tets.shape[0],) or (tets.shape[0] and (parent.min() < 0 or parent.max() >= self.num_tets)):
-            raise ValueError(f"apply_improve: parent must be ({tets.shape[0]},) ids of the model's {self.num_tets} tets")
+        parent = self._parents(parent, tets, "apply_improve")
         x = torch.tensor(np.array(mesh.vertices), dtype=torch.float32, device=self.device)
         with torch.no_grad():
             phi_t = self.phi.data[self.tets].mean(dim=1)[parent]
@@ -243,10 +241,8 @@ class TetGaussians:
         N = self.num_vertices
         if x.shape != (N + len(ends), 3) or (len(ends) and ends.max() >= N + len(ends)):
             raise ValueError(f"apply_refine: {x.shape[0]} vertices for {N} old + {len(ends)} midpoints")
-        parent = torch.as_tensor(np.asarray(parent, dtype=np.int64), device=self.device)
         tets = torch.as_tensor(np.asarray(tets, dtype=np.int64), device=self.device)
-        if parent.shape != (tets.shape[0],) or (tets.shape[0] and (parent.min() < 0 or parent.max() >= self.num_tets)):
-            raise ValueError(f"apply_refine: parent must be ({tets.shape[0]},) ids of the model's {self.num_tets} tets")
+        parent = self._parents(parent, tets, "apply_refine")
         phi = np.concatenate([self.phi.detach().cpu().double().numpy(), np.zeros(len(ends))])
         # A midpoint may sit on an edge to an earlier midpoint: sweep until every value is
         # final (as many sweeps as the deepest chain, a few per refinement round).
@@ -256,6 +252,13 @@ class TetGaussians:
                 break
             phi[N:] = mid
         self._follow_parents(x, tets, parent, torch.as_tensor(phi, dtype=torch.float32, device=self.device))
+
+    def _parents(self, parent, tets: torch.Tensor, caller: str) -> torch.Tensor:
+        """``parent`` as (K,) int64 ids of this model's tets, one per row of ``tets`` (K, 4)."""
+        parent = torch.as_tensor(np.asarray(parent, dtype=np.int64), device=self.device)
+        if parent.shape != (tets.shape[0],) or (tets.shape[0] and (parent.min() < 0 or parent.max() >= self.num_tets)):
+            raise ValueError(f"{caller}: parent must be ({tets.shape[0]},) ids of the model's {self.num_tets} tets")
+        return parent
 
     def _follow_parents(self, x: torch.Tensor, tets: torch.Tensor, parent: torch.Tensor, phi: torch.Tensor) -> None:
         """Take the mesh (x (N', 3), tets (K, 4)) and field phi (N',); each surfel its parent's

@@ -18,11 +18,11 @@ Pruning (§5) deletes tets with alpha < 0.1 and then vertices no tet uses; if th
 mesh, the largest face-connected component is kept and the rest counted (scene level,
 ``TopologyConfig.min_component``: every component above a size threshold). After the FIRST
 prune the surfel scales are recomputed (0.65 x mean centroid-to-vertex distance) and become
-learnable, and opacities become free parameters initialised from the field. Before that,
-with ``TopologyConfig.refine_rings`` > 0, the tets near the boundary are bisected
-(:func:`refine_near_surface`): the field is interpolated, so the prune's result is kept as
-it is, and the later prunes and mesh-only blocks then work at the finer size, which the
-initial edge length alone would fix (issues 12 and 16).
+learnable, and opacities become free parameters initialised from the field. With
+``TopologyConfig.refine_rings`` > 0, the prune ``refine_at_prune`` is followed by a bisection
+of the tets near the boundary (:func:`refine_near_surface`; the fast preset: after its last
+prune): the surfels follow their parent tets, so what follows (the last Gaussian steps and
+mesh-only block) works finer than the initial edge length alone allows (issues 12 and 16).
 
 The field is initialised SDF-like (method.md leaves this open): ``phi_init="visual_hull"``
 labels each vertex inside/outside the masks' visual hull (:func:`holowarp.carve.inside_hull`)
@@ -225,7 +225,7 @@ def refine_near_surface(model: TetGaussians, config: TopologyConfig, dataset=Non
         band &= ~inside[mesh.tets].all(axis=1)
         if not band.any():
             return {"band": 0, "target": 0.0, "tets_before": model.num_tets, "tets_after": model.num_tets}
-    ends, _, length, longest = edge_table(mesh.vertices, mesh.tets)
+    _, _, length, longest = edge_table(mesh.vertices, mesh.tets)
     target = float(config.refine_factor * np.median(length[longest[band]]))
     V, T, parent, new = bisect_longest_edges(mesh.vertices, mesh.tets, band, target)
     before = model.num_tets
