@@ -75,6 +75,10 @@ def test_fast_preset_scales_every_count_by_one_factor_and_keeps_the_order():
     assert paper.topology.refine_rings == 0 and fast.topology.refine_rings == 1
     assert fast.topology.refine_at_prune == len(fs.prune_at) - 1
     assert fast.geometry.lr_start == pytest.approx(paper.geometry.lr_start / FAST_FACTOR)
+    # ... and keeps L_HC on in its last mesh block (GeometryConfig.hc_floor); paper: lam(t) alone.
+    assert replace(fast.geometry, hc_floor=0.0, lr_start=paper.geometry.lr_start,
+                   lr_end=paper.geometry.lr_end) == paper.geometry
+    assert paper.geometry.hc_floor == 0.0 and fast.geometry.hc_floor == 1.0
     with pytest.raises(ValueError, match="preset"):
         preset("slow")
 
@@ -478,6 +482,26 @@ def test_normal_prior_in_geometry_blocks_matches_a_numpy_cosine_and_is_logged(sp
     off = GeometryBlock(TetGaussians(carved, free_opacity=True), ds, ds.train_idx, GeometryConfig(), block_iters=4,
                         total_mesh_iters=4)
     assert off.normals is None and "prior" not in off.step(0, 0, seed=1)
+
+
+def test_hc_floor_keeps_the_hc_term_in_the_loss_where_lam_has_decayed_to_zero(sphere_scene):
+    from holowarp.stages.geometry import GeometryBlock
+
+    ds, _ = sphere_scene
+    T = 8
+    parts = {}
+    for floor in (0.0, 0.7):
+        cfg = GeometryConfig(hc_floor=floor)
+        blk = GeometryBlock(_grid_carved_model(ds, 8), ds, ds.train_idx, cfg, block_iters=T, total_mesh_iters=T)
+        # Step T - 1 of the last block, at mesh iteration T: lam(T) = 0, lam_cond = 1.
+        r = {k: float(v) for k, v in blk.step(T - 1, T, seed=5).items()}
+        assert r["lam"] == 0.0 and r["hc"] > 0
+        rest = cfg.w_mask * r["mask"] + cfg.w_norm * r["norm"] + cfg.c_barrier * r["inv"]
+        parts[floor] = (r["loss"] - rest, cfg.c_hc * r["hc"])
+    assert parts[0.0][0] == pytest.approx(0.0, abs=1e-7)
+    assert parts[0.7][0] == pytest.approx(0.7 * parts[0.7][1], rel=1e-4)
+    with pytest.raises(ValueError, match="hc_floor"):
+        GeometryConfig(hc_floor=-0.1)
 
 
 def _mask_error(model, ds) -> float:

@@ -4,7 +4,7 @@ During a block the surfels' attributes are frozen and only the tet vertices move
 follow through their fixed barycentric coordinates. Each step draws one training view and
 minimises
 
-    L_geo = w_mask L_mask + w_norm L_norm + lam(t) (c_hc L_HC + c_w L_w) + c_barrier L_inv
+    L_geo = w_mask L_mask + w_norm L_norm + max(lam(t), hc_floor) c_hc L_HC + lam(t) c_w L_w + c_barrier L_inv
 
 - ``L_mask``: mean |alpha_tet - mask| over the image, alpha_tet the anti-aliased silhouette
   of the boundary triangles (``holowarp.ops.rasterize_mesh``);
@@ -18,7 +18,10 @@ minimises
 - ``L_w``: the weighted bi-harmonic energy against the rest shape captured at block start,
   gamma = 5e-4 for tets touching surface vertices (uniform in the ablation);
 - ``L_inv``: sum max(-det F, 0)^p with p rising linearly 2 -> 4 over all mesh iterations;
-- ``lam(t) = (1 - t / T)^2``, t counting mesh iterations over ALL blocks (T of them).
+- ``lam(t) = (1 - t / T)^2``, t counting mesh iterations over ALL blocks (T of them);
+  ``L_HC`` is weighted by ``max(lam(t), hc_floor)`` (:attr:`GeometryConfig.hc_floor`: 0 in
+  the paper, 1 in the fast preset, which refines the tets near the surface before its last
+  block and needs the smoothing there).
 
 Vertices are optimised with :class:`holowarp.optim.UniformAdam` (per-step displacement cap)
 and the cosine lr 2e-4 -> 1e-4. Orientation is guaranteed, not only penalised: after each
@@ -204,8 +207,11 @@ class GeometryBlock:
         l_hc = en.hc_laplacian(x, self.bf_np, lam_cond=lam_cond) / self.mean_edge**2
         p0, p1 = cfg.barrier_p
         l_w, l_inv = en.biharmonic_and_inversion(x, p=p0 + (p1 - p0) * (t / max(self.total - 1, 1)))
-        loss = (cfg.w_mask * l_mask + cfg.w_norm * l_norm + lam * (cfg.c_hc * l_hc + cfg.c_w * l_w)
-                + cfg.c_barrier * l_inv)
+        if cfg.hc_floor > lam:
+            reg = cfg.hc_floor * cfg.c_hc * l_hc + lam * cfg.c_w * l_w
+        else:  # the paper's form, bit for bit (tests/test_regression.py records its meshes)
+            reg = lam * (cfg.c_hc * l_hc + cfg.c_w * l_w)
+        loss = cfg.w_mask * l_mask + cfg.w_norm * l_norm + reg + cfg.c_barrier * l_inv
         if l_prior is not None:
             loss = loss + cfg.w_prior * l_prior
         self.opt.zero_grad(set_to_none=True)
