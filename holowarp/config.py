@@ -933,10 +933,8 @@ def _fast() -> ReconConfig:
     # PSNR 27.10 -> 28.51 dB, +31 s; on bob Chamfer-L1 0.00272 -> 0.00275, normal consistency
     # 0.979 -> 0.979, PSNR 29.86 -> 32.03 dB, the same time.
     topo = replace(base.topology, refine_rings=1, refine_factor=0.85, refine_at_prune=len(base.schedule.prune_at) - 1)
-    # Keep L_HC at its starting weight through the mesh-only blocks (GeometryConfig.hc_floor):
-    # measured on bob (128²) from one snapshot before the last prune, Chamfer-L1 0.00272 ->
-    # 0.00252, normal consistency 0.980 -> 0.987, Hausdorff 0.056 -> 0.025 (the visual hull
-    # on the same data: 0.00258, 0.993, 0.017).
+    # Keep L_HC at its starting weight through the mesh-only blocks, so the last one smooths
+    # the refined surface (GeometryConfig.hc_floor has the measurements).
     geo = replace(base.geometry, hc_floor=1.0)
     return replace(base, preset="fast", resolution=128, checkpoint_every=50, topology=topo, geometry=geo)
 

@@ -73,7 +73,7 @@ def test_a_fixed_start_gives_the_recorded_mesh(torus_data, tmp_path, one_torch_t
     # The fast preset's refinement after its last prune (TopologyConfig.refine_*) postdates
     # the hashes too: off here, covered by tests/test_refine.py and tests/test_reconstruct_e2e.py.
     cfg = replace(cfg, topology=replace(cfg.topology, refine_rings=0))
-    # As does its L_HC floor in the last mesh block (GeometryConfig.hc_floor), covered by
+    # As does its L_HC weight floor in the mesh blocks (GeometryConfig.hc_floor), covered by
     # tests/test_reconstruct_stages.py.
     cfg = replace(cfg, geometry=replace(cfg.geometry, hc_floor=0.0))
     model = TetGaussians(mesh, colors=np.full((mesh.num_tets, 3), 0.5), phi=phi, config=cfg.topology, seed=cfg.seed)
