@@ -35,6 +35,7 @@ _ROWS = [
     ("components", "components", "face-connected"),
     ("manifold", "manifold", "boundary"),
     ("genus", "genus", "boundary"),
+    ("boundary_shells", "boundary shells", "1 = no sealed void"),
     ("tets", "tets", ""),
     ("inverted_ratio", "inverted ratio", "signed volume <= 0"),
     ("min_dihedral_mean", "min dihedral mean", "degrees"),

@@ -10,7 +10,13 @@ the cleanup of §7) can break that in two ways, and this module holds both remed
   input that was not manifold to begin with);
 - :func:`thin_simple`: remove tets one layer at a time where each removal keeps the
   topology (a *simple* tet), so that a removal which would cut a handle or split a piece
-  stops short of it.
+  stops short of it;
+- :func:`fill_sealed`: put back the removed tets that no longer connect to the outside
+  (a sealed void, which no view can see). A guard that puts tets back (the manifold
+  restoration, the dent and pit rules) can close the mouth of a removed region and seal
+  what lies behind it, and removing an interior tet (cleanup's degenerate tets) opens a
+  void with no mouth at all. Such a void is a second boundary shell: its faces count in
+  every surface metric, and its genus in the sum over shells, while no image constrains it.
 """
 
 from __future__ import annotations
@@ -20,7 +26,8 @@ import numpy as np
 from holowarp.config import kept_components
 from holowarp.tetmesh import TET_EDGE_FACES, TET_EDGES, TET_FACES, TetMesh
 
-__all__ = ["restore_until_manifold", "repair_manifold", "thin_simple", "simple_tets", "vertex_to_tets", "fans"]
+__all__ = ["restore_until_manifold", "repair_manifold", "thin_simple", "simple_tets", "vertex_to_tets", "fans",
+           "open_to_outside", "fill_sealed"]
 
 
 def vertex_to_tets(tets: np.ndarray, n: int):
@@ -90,6 +97,48 @@ def restore_until_manifold(
         candidates &= ~back
         restored += int(back.sum())
     return keep, restored
+
+
+def open_to_outside(removed: np.ndarray, adj: np.ndarray) -> np.ndarray:
+    """The removed tets (M,) bool that connect, through faces shared with other removed
+    tets, to a boundary face of the whole mesh: space a view can look into. The rest of
+    ``removed`` are sealed voids.
+
+    Args:
+        removed: (M,) bool, the tets removed (or about to be) from a mesh of M tets.
+        adj: (M, 4) face neighbours of that whole mesh (:meth:`TetMesh.face_adjacency`,
+            -1 on its boundary).
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    M = len(removed)
+    if not removed.any():
+        return removed.copy()
+    rows = np.repeat(np.arange(M), 4)
+    cols = adj.reshape(-1).astype(np.int64)
+    both = (cols >= 0) & removed[rows] & removed[np.maximum(cols, 0)]
+    g = coo_matrix((np.ones(int(both.sum())), (rows[both], cols[both])), shape=(M, M))
+    _, lab = connected_components(g, directed=False)
+    open_comp = np.zeros(lab.max() + 1, dtype=bool)
+    open_comp[lab[removed & np.any(adj < 0, axis=1)]] = True
+    return removed & open_comp[lab]
+
+
+def fill_sealed(keep: np.ndarray, adj: np.ndarray) -> tuple[np.ndarray, int]:
+    """Put back every removed tet (``~keep``) that :func:`open_to_outside` finds sealed.
+
+    Filling a void removes its whole boundary shell and touches no other boundary face, so
+    the kept set's components, manifoldness and outer surface are unchanged.
+
+    Args:
+        keep: (M,) bool kept tets (not modified); adj: (M, 4) face neighbours of all M tets.
+    Returns:
+        (keep, filled): the new (M,) bool mask and how many tets were put back.
+    """
+    removed = ~keep
+    sealed = removed & ~open_to_outside(removed, adj)
+    return keep | sealed, int(sealed.sum())
 
 
 def simple_tets(tets: np.ndarray, keep: np.ndarray, adj: np.ndarray, which: np.ndarray) -> np.ndarray:

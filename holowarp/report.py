@@ -76,6 +76,7 @@ def build_report(*, config, device, data_dir, dataset, state, clean, cleanup_inf
         "components": clean.num_components(),
         "manifold": bool(man["manifold"]),
         "genus": clean.genus(),
+        "boundary_shells": clean.boundary_shells(),
         "inverted_before_cleanup": cleanup_info["inverted_before_cleanup"],
         "flipped": cleanup_info["flipped"],
         "dropped": cleanup_info["dropped"],

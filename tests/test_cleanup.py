@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from holowarp.primitives import box_tetmesh
-from holowarp.manifold import repair_manifold
+from holowarp.manifold import fill_sealed, repair_manifold
 from holowarp.stages.cleanup import cleanup
 from holowarp.config import CleanupConfig, TetInitConfig
 from holowarp.stages.tet_init import HullError, scaled_hull
@@ -63,6 +63,79 @@ def test_cleanup_flips_fine_inverted_tets_and_drops_degenerate_ones(rng):
     assert info["inverted_after_cleanup"] == 0
     assert clean.num_tets == mesh.num_tets
     np.testing.assert_allclose(clean.volume(), mesh.volume(), rtol=1e-12)
+
+
+def _sealed_by_flood(tets: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Oracle for :func:`fill_sealed`: breadth-first flood from the mesh's boundary faces
+    through removed tets, one face at a time (dict of sorted faces, no sparse graphs)."""
+    from collections import deque
+
+    faces: dict = {}
+    for e, t in enumerate(tets):
+        for k in range(4):
+            faces.setdefault(tuple(sorted(np.delete(t, k))), []).append(e)
+    reached = np.zeros(len(tets), dtype=bool)
+    todo = deque(e for f, es in faces.items() if len(es) == 1 for e in es if not keep[e])
+    for e in todo:
+        reached[e] = True
+    while todo:
+        e = todo.popleft()
+        for k in range(4):
+            for n in faces[tuple(sorted(np.delete(tets[e], k)))]:
+                if not keep[n] and not reached[n]:
+                    reached[n] = True
+                    todo.append(n)
+    return ~keep & ~reached
+
+
+def test_fill_sealed_puts_back_exactly_the_removed_tets_no_flood_from_outside_reaches(rng):
+    mesh = box_tetmesh((5, 5, 5))
+    centres = mesh.vertices[mesh.tets].mean(axis=1)
+    for p in (0.15, 0.3, 0.45):
+        keep = rng.random(mesh.num_tets) >= p
+        keep[np.linalg.norm(centres - 0.5, axis=1) < 0.15] = False  # a pocket nothing opens
+        expected = _sealed_by_flood(mesh.tets, keep)
+        assert expected.any()
+        out, filled = fill_sealed(keep, mesh.face_adjacency())
+        np.testing.assert_array_equal(out, keep | expected)
+        assert filled == int(expected.sum())
+        assert not (out & ~keep & ~expected).any()
+    # Nothing removed, nothing sealed: unchanged.
+    all_kept = np.ones(mesh.num_tets, dtype=bool)
+    assert fill_sealed(all_kept, mesh.face_adjacency())[1] == 0
+
+
+def test_cleanup_fills_the_void_a_degenerate_interior_tet_leaves(rng):
+    """An interior tet split 1-4 at a point almost on one of its faces: the child on that face
+    is degenerate, and dropping it would leave a void of four faces with no mouth (a second
+    boundary shell). Cleanup puts it back instead."""
+    mesh = box_tetmesh((3, 3, 3))
+    mesh = mesh.with_vertices(mesh.vertices + rng.uniform(-0.02, 0.02, mesh.vertices.shape))
+    inner = np.ones(mesh.num_vertices, dtype=bool)
+    inner[mesh.surface_vertices()] = False
+    e = int(np.flatnonzero(inner[mesh.tets].all(axis=1))[0])  # a tet of the central cell
+    a, b, c, d = mesh.tets[e]
+    V = mesh.vertices
+    w = rng.dirichlet(np.ones(3))
+    p = w[0] * V[a] + w[1] * V[b] + w[2] * V[c] + 1e-6 * (V[d] - (V[a] + V[b] + V[c]) / 3)
+    n = mesh.num_vertices
+    children = np.array([[n, b, c, d], [a, n, c, d], [a, b, n, d], [a, b, c, n]])
+    T = np.vstack([np.delete(mesh.tets, e, axis=0), children])
+    split = TetMesh(np.vstack([V, p]), T)
+    vol = split.signed_volumes()
+    assert np.all(vol > 0) and vol[-1] < 1e-4 * np.median(vol)
+    clean, kept, info = cleanup(split)
+    assert info["dropped"] == 0 and info["filled_sealed"] == 1
+    assert clean.num_tets == split.num_tets and clean.boundary_shells() == 1
+    assert info["manifold"] and info["inverted_after_cleanup"] == 0
+    # Without the fill the same mesh has a second shell: the void the test is about.
+    assert split.submesh(np.arange(split.num_tets - 1)).boundary_shells() == 2
+    # The sliver put back is §7b's to fix, from inside, with the boundary untouched.
+    from holowarp.stages.improve import improve
+
+    assert clean.quality_summary()["min_dihedral_worst"] < 0.01
+    better, _, rep = improve(clean)
+    assert rep["after"]["min_dihedral_worst"] > 10.0 and better.boundary_shells() == 1
 
 
 def test_cleanup_keeps_largest_component_and_counts_the_rest():

@@ -532,7 +532,25 @@ def test_prune_never_opens_sealed_cavities_nor_leaves_a_non_manifold_boundary(rn
     assert info["pruned"] > 0 and info["kept_cavity"] >= int(pocket.sum())
     assert out.boundary_shells() == 1  # no internal void surface
     assert info["low_alpha"] == int(low.sum())
-    assert info["pruned"] + info["kept_cavity"] + info["kept_dents"] + info["restored_for_manifold"] == info["low_alpha"]
+    assert (info["pruned"] + info["kept_cavity"] + info["kept_dents"] + info["restored_for_manifold"]
+            + info["filled_sealed"]) == info["low_alpha"]
+
+
+def test_prune_fills_the_voids_its_guards_seal(rng):
+    """Random low-alpha tets: the manifold and dent guards put tets back, and a restored tet
+    at the mouth of a pruned region seals what lies behind it. Every such void is filled, so
+    the prune always leaves one boundary shell."""
+    mesh = box_tetmesh((6, 6, 6))
+    filled = 0
+    for _ in range(6):
+        low = rng.random(mesh.num_tets) < 0.4
+        model = _model_with_low(mesh, low)
+        info = prune(model, PLAIN)
+        out = model.mesh()
+        assert out.boundary_shells() == 1 and out.num_components() == 1 and out.manifold()["manifold"]
+        assert info["tets_after"] == model.num_tets == mesh.num_tets - info["pruned"] - info["tets_removed_by_component"]
+        filled += info["filled_sealed"]
+    assert filled > 0  # the guards did seal voids (at p = 0.4 most draws do)
 
 
 def test_depth_carving_empties_a_dent_the_silhouettes_fill_and_keeps_the_solid():

@@ -148,6 +148,7 @@ def _targets(row: dict, ratios: dict) -> dict:
     t = {
         "one_component": h["components"] == 1,
         "exact_genus": h["genus"] == row["genus_expected"],
+        "no_sealed_void": h.get("boundary_shells") == 1,
         "manifold": bool(h["manifold"]),
         "no_inverted": h["inverted_ratio"] == 0,
         "iou_ge_hull": h["volume_iou"] >= v["volume_iou"],

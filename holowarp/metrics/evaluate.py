@@ -12,7 +12,9 @@ when a dataset is given):
   NaN for a convex GT);
 - volume: ``volume_iou`` (winding-number inside test on 100k uniform points);
 - topology of the prediction: ``components`` (face-connected tet components), ``manifold``
-  (boundary edge- and vertex-manifold), ``genus`` (of the boundary), ``tets``;
+  (boundary edge- and vertex-manifold), ``genus`` (of the boundary, summed over its shells),
+  ``tets``, ``boundary_shells`` (connected pieces of the boundary: 1 unless a sealed void
+  adds an inner one, which no view sees and ``genus`` does not show);
 - tet quality: ``inverted_ratio`` (signed volume <= 0, on the mesh AS GIVEN),
   ``min_dihedral_mean``, ``min_dihedral_worst`` (degrees), ``aspect_ratio_mean``.
 
@@ -80,10 +82,13 @@ METRIC_KEYS = (
     "f_score_005",
     "chamfer_l1_floor",
     "concave_chamfer",
+    "boundary_shells",
 )
 #: The keys that describe the prediction's tets (``None`` for a surface prediction).
+#: ``boundary_shells``: connected pieces of the boundary surface. One object without a
+#: sealed void has one; ``genus`` sums over shells, so a void would hide in it.
 TET_KEYS = ("components", "manifold", "genus", "tets", "inverted_ratio", "min_dihedral_mean", "min_dihedral_worst",
-            "aspect_ratio_mean")
+            "aspect_ratio_mean", "boundary_shells")
 
 
 class EvaluationError(InputError):
@@ -153,6 +158,7 @@ def _tet_keys(ptm) -> dict:
         "min_dihedral_mean": float(q["min_dihedral_mean"]),
         "min_dihedral_worst": float(q["min_dihedral_worst"]),
         "aspect_ratio_mean": float(q["aspect_ratio_mean"]),
+        "boundary_shells": int(ptm.boundary_shells()),
     }
 
 

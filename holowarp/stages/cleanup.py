@@ -28,17 +28,22 @@ In order:
    pits that removing whole fans digs (measured on bob: Chamfer-L1 of a pitted run
    0.0041 → 0.0037, at the level of the mesh before cleanup). Flaps put back this way are
    then dropped on their own, which never pinches;
-4. **components**: only the largest face-connected component is kept (with
+4. **sealed voids**: every removed tet that no longer connects to the outside through other
+   removed tets is put back (oriented positively), so that dropping a degenerate interior
+   tet leaves no void that no image sees (a second boundary shell, which would also pinch
+   the boundary where it touches the surface at a vertex). An almost flat tet put back is
+   left to §7b's interior flips, which replace slivers without touching the boundary;
+5. **components**: only the largest face-connected component is kept (with
    ``config.min_component``, scene level, method.md §11: every component with at least
    that fraction of the tets);
-5. **manifold repair** (only for inputs that were not manifold to begin with): where the
+6. **manifold repair** (only for inputs that were not manifold to begin with): where the
    boundary is not a manifold (an edge in more than two boundary faces, or a vertex whose
    boundary star is several fans), the tets around that edge/vertex are grouped into fans
    connected through faces containing it, and all but the largest fan are removed; a vertex
    whose tets form one fan while empty space reaches it from separate sides loses its
    whole star; repeated until the boundary is manifold;
-6. unused vertices are removed;
-7. **blunting** (:func:`blunt_ridges`): knife ridges of the boundary, edges where the
+7. unused vertices are removed;
+8. **blunting** (:func:`blunt_ridges`): knife ridges of the boundary, edges where the
    solid's wedge angle is under ``blunt_wedge_deg`` (30°), are opened by moving their
    vertices along the surface towards their neighbours' centroid, by at most
    ``blunt_max_move`` (half a mean boundary edge) each. Such ridges are fitting artefacts
@@ -60,7 +65,7 @@ from __future__ import annotations
 import numpy as np
 
 from holowarp.config import CleanupConfig, kept_components
-from holowarp.manifold import repair_manifold, restore_until_manifold
+from holowarp.manifold import fill_sealed, repair_manifold, restore_until_manifold
 from holowarp.tetmesh import TetMesh
 
 __all__ = ["cleanup"]
@@ -74,10 +79,11 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
         the indices of its tets in the input (tet i of the output is input tet kept[i],
         possibly with two vertices swapped), and a report of every count:
         ``inverted_before_cleanup`` (signed volume <= 0 on entry), ``flipped``, ``dropped``
-        (degenerate), ``dropped_caps`` (boundary slivers and flaps, net of those put back),
+        (degenerate, net of those put back), ``dropped_caps`` (boundary slivers and flaps, net of those put back),
         ``dropped_flaps`` (the flaps among them),
         ``caps_restored_for_manifold``, ``components_before``, ``components_removed``,
-        ``tets_removed_by_component``, ``tets_removed_for_manifold``, ``manifold``,
+        ``tets_removed_by_component``, ``tets_removed_for_manifold``, ``filled_sealed``
+        (removed tets put back because they sealed a void), ``manifold``,
         ``components``, ``inverted_after_cleanup``, ``tets_before``, ``tets_after``, and
         ``blunt`` (:func:`blunt_ridges`' report).
     """
@@ -93,9 +99,10 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
     t[flip, 2], t[flip, 3] = mesh.tets[flip, 3], mesh.tets[flip, 2]
     info["flipped"] = int(flip.sum())
     keep, capped, flaps = _drop_caps_and_flaps(mesh.vertices, t, ~degenerate, config)
-    caps = int(np.count_nonzero(capped & ~keep))
     restored = int(np.count_nonzero(capped & keep))
-    info["dropped"] = int(degenerate.sum()) + caps
+    keep, info["filled_sealed"] = _fill_sealed_voids(mesh, t, vol, keep)
+    caps = int(np.count_nonzero(capped & ~keep))
+    info["dropped"] = int(np.count_nonzero(degenerate & ~keep)) + caps
     info["dropped_caps"] = caps
     info["dropped_flaps"] = int(np.count_nonzero(flaps & ~keep))
     info["caps_restored_for_manifold"] = restored
@@ -117,11 +124,22 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
     info["tets_removed_for_manifold"] = rep["removed_tets"]
     out, _ = TetMesh(mesh.vertices, t[kept], validate=False).remove_unused_vertices()
     out, info["blunt"] = blunt_ridges(out, config, thresh)
-    info["manifold"] = rep["manifold"]
+    info["manifold"] = rep["manifold"] if not info["filled_sealed"] else bool(out.manifold()["manifold"])
     info["components"] = out.num_components()
     info["inverted_after_cleanup"] = int(np.count_nonzero(out.signed_volumes() <= 0))
     info["tets_after"] = out.num_tets
     return out, kept.astype(np.int64), info
+
+
+def _fill_sealed_voids(mesh: TetMesh, t: np.ndarray, vol: np.ndarray, keep: np.ndarray) -> tuple[np.ndarray, int]:
+    """Step 4 of the module docstring: (keep (M,) bool with the sealed removed tets added,
+    how many were added). ``t`` (M, 4) is modified in place: an added tet of negative
+    signed volume ``vol`` (M,) gets two vertices swapped."""
+    out, filled = fill_sealed(keep, mesh.face_adjacency())
+    if filled:
+        neg = out & ~keep & (vol < 0)
+        t[neg, 2], t[neg, 3] = mesh.tets[neg, 3], mesh.tets[neg, 2]
+    return out, filled
 
 
 def ridge_wedges(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
@@ -150,7 +168,7 @@ def _ridge_index(mesh: TetMesh):
 
 
 def blunt_ridges(mesh: TetMesh, config: CleanupConfig, min_volume: float = 0.0) -> tuple[TetMesh, dict]:
-    """Step 7 of the module docstring: open the knife ridges of the boundary.
+    """Step 8 of the module docstring: open the knife ridges of the boundary.
 
     A boundary edge whose wedge angle (:func:`ridge_wedges`) is below
     ``config.blunt_wedge_deg`` can only be cut by tets whose dihedral angle at that edge is
