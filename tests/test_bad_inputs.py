@@ -300,6 +300,12 @@ CASES = [
     Case("raw traceback", "improve --max-surface-move -1", "improve", ["{M}", "{O}/out.vtu", "--max-surface-move", "-1"],
          "--max-surface-move"),
     Case("output path", "improve OUT parent is a file", "improve", ["{M}", "{O}/report.json/x.vtu"], "is a file"),
+    Case("raw traceback", "bench quality --set unknown setting", "bench.quality",
+         ["--work", "{O}/q", "--objects", "bowl", "--set", "geometry.no_such=1"], "--set geometry.no_such=1"),
+    Case("raw traceback", "bench quality --set unknown section", "bench.quality",
+         ["--work", "{O}/q", "--objects", "bowl", "--set", "nowhere.x=1"], "--set nowhere.x=1"),
+    Case("raw traceback", "bench quality --set bad value", "bench.quality",
+         ["--work", "{O}/q", "--objects", "bowl", "--set", "geometry.hc_floor=-1"], "hc_floor"),
     Case("silent wrong result", "improve a mixed-orientation mesh", "improve", ["{T}/mixed.npz", "{O}/out.vtu"],
          "mixed orientation", setup=lambda w, T, O: _mixed(w, T)),
 ]
@@ -441,3 +447,14 @@ def test_every_surface_format_trimesh_reads_is_a_ground_truth_and_a_mesh_to_synt
                         "--json", str(tmp_path / "m.json")])
     assert rc == 0 and json.loads((tmp_path / "m.json").read_text())["chamfer_l1"] > 0
     capsys.readouterr()
+
+
+def test_bench_quality_refuses_a_missing_suite_mesh_before_any_work(tmp_path, monkeypatch, capsys):
+    from holowarp.bench import quality
+
+    missing = tmp_path / "nowhere" / "spot.obj"
+    monkeypatch.setitem(quality.OBJECTS, "spot", (missing, "y", 0, False))
+    rc = quality.main(["--work", str(tmp_path / "q"), "--objects", "bowl", "spot"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].startswith("error: --objects spot: ") and str(missing) in err[0]
+    assert not (tmp_path / "q").exists()  # refused before the bowl's hour of work, and before --work was made

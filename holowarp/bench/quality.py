@@ -19,6 +19,7 @@ import argparse
 import json
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -74,6 +75,7 @@ def _mesh_file(name: str, work: Path) -> tuple[Path, str]:
 def apply_overrides(cfg, overrides):
     """``cfg`` with dotted ``section.field=value`` overrides applied (values parsed as JSON
     when they parse, else kept as strings)."""
+    import dataclasses
     from dataclasses import fields, replace
 
     for item in overrides:
@@ -83,11 +85,13 @@ def apply_overrides(cfg, overrides):
         except json.JSONDecodeError:
             value = raw
         parts = key.split(".")
+        if len(parts) > 2 or not all(parts) or not hasattr(cfg, parts[0]):
+            raise ValueError(f"--set {item}: expected SECTION.SETTING=VALUE or SETTING=VALUE of the fast preset")
         if len(parts) == 1:
             cfg = replace(cfg, **{parts[0]: value})
         else:
             sec = getattr(cfg, parts[0])
-            if parts[1] not in {f.name for f in fields(sec)}:
+            if not dataclasses.is_dataclass(sec) or parts[1] not in {f.name for f in fields(sec)}:
                 raise ValueError(f"--set {item}: {parts[0]} has no setting {parts[1]!r}")
             cfg = replace(cfg, **{parts[0]: replace(sec, **{parts[1]: tuple(value) if isinstance(value, list) else value})})
     return cfg
@@ -164,10 +168,32 @@ def _targets(row: dict, ratios: dict) -> dict:
     return t
 
 
+def _input_error(args) -> str | None:
+    """What makes the request unusable, checked before any work (a missing shared mesh used
+    to surface as a traceback after the objects before it had run for an hour), or None."""
+    from holowarp.config import preset
+
+    for name in args.objects:
+        src = OBJECTS[name][0]
+        if src != "shape" and not Path(src).is_file():
+            return (f"--objects {name}: {src}: no such file (the suite reads the shared test meshes from "
+                    f"{SHARED}, beside the checkout)")
+    try:
+        apply_overrides(preset("fast"), tuple(args.set))
+    except (TypeError, ValueError) as e:
+        return str(e).splitlines()[0]
+    return None
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from holowarp.device import resolve_device
     from holowarp.fileio import check_output_dir
+
+    problem = _input_error(args)
+    if problem is not None:
+        print(f"error: {problem}", file=sys.stderr)
+        return 2
 
     device = resolve_device(args.device)
     work = check_output_dir(args.work, what="--work")
