@@ -418,11 +418,7 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
       non-manifold edge or vertex are restored, repeatedly, until the boundary is a
       manifold. Restoring every pruned tet gives back the (manifold) mesh before the
       prune, so this terminates with a manifold boundary whenever the input had one;
-    - pruning never leaves a sealed void: a guard that puts tets back at the mouth of a
-      pruned region seals what lies behind it (measured on the mug of the quality suite,
-      fast preset: two voids of 14 and 8 faces, the mug's three boundary shells). After
-      the guards, every pruned tet that no longer connects to the outside through other
-      pruned tets is put back (:func:`holowarp.manifold.fill_sealed`);
+    - pruning never leaves a sealed void (:func:`_fill_sealed_voids`);
     - with ``evidence`` (M,) bool, the tets some view shows to be empty space (outside a
       silhouette, or in front of the rendered surface): if the tets no view shows empty
       decide the topology (the prune with them and the prune without them leave different
@@ -444,8 +440,7 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
         ``kept_cavity`` (low-alpha tets kept because sealed), ``kept_dents`` (low-alpha tets
         kept because three or more of their faces meet kept tets), ``kept_pits``,
         ``restored_for_manifold``, ``kept_for_genus``, ``kept_for_split`` (low-alpha tets kept
-        by the guards), ``filled_sealed`` (pruned tets put back because the guards sealed
-        them), ``genus_before``, ``genus_after``,
+        by the guards), ``filled_sealed`` (put back: sealed), ``genus_before``, ``genus_after``,
         ``removed_components``, ``tets_removed_by_component``, ``tets_after``, ``emptied``,
         and with ``config.min_component`` ``kept_components``.
     """
@@ -458,8 +453,8 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
     info = {"tets_before": M, "low_alpha": int(low.sum()), "emptied": False}
     if low.all():
         info.update(emptied=True, pruned=0, kept_cavity=0, kept_dents=0, kept_pits=0, restored_for_manifold=0,
-                    filled_sealed=0, kept_for_genus=0, kept_for_split=0, removed_components=0, raw_components=0, raw_non_manifold=0,
-                    tets_removed_by_component=0, tets_after=M)
+                    filled_sealed=0, kept_for_genus=0, kept_for_split=0, removed_components=0, raw_components=0,
+                    raw_non_manifold=0, tets_removed_by_component=0, tets_after=M)
         return info
     adj = mesh.face_adjacency()
     drop = open_to_outside(low, adj)
@@ -478,14 +473,7 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
         guarded = _guarded_by_evidence(mesh, drop, np.asarray(evidence, dtype=bool), alpha, (ids, removed), info, config)
         if guarded is not None:
             ids, n, removed, n_kept = guarded
-    # The guards above put tets back, and one at the mouth of a pruned region seals what
-    # lies behind it: a void no view sees, a second boundary shell. Fill every such void.
-    kept = np.zeros(M, dtype=bool)
-    kept[ids] = True
-    kept, info["filled_sealed"] = fill_sealed(kept, adj)
-    if info["filled_sealed"]:
-        ids = np.flatnonzero(kept)
-        removed = int((~kept & ~drop).sum())  # what went with cut-off pieces, none of it sealed
+    ids, removed = _fill_sealed_voids(ids, removed, drop, adj, info)
     info["pruned"] = int(M - len(ids) - removed)
     model.keep(ids)
     info.update(removed_components=max(n - n_kept, 0), tets_removed_by_component=removed, tets_after=model.num_tets,
@@ -493,6 +481,21 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
     if config.min_component is not None:
         info["kept_components"] = n_kept
     return info
+
+
+def _fill_sealed_voids(ids: np.ndarray, removed: int, drop: np.ndarray, adj: np.ndarray, info: dict):
+    """The guards put tets back, and one at the mouth of a pruned region seals what lies
+    behind it: a void no view sees, a second boundary shell (the mug of the quality suite,
+    fast preset, had two, of 14 and 8 faces). After the guards, every pruned tet that no
+    longer connects to the outside through other pruned tets is put back
+    (:func:`holowarp.manifold.fill_sealed`). Returns (kept ids, tets removed with cut-off
+    pieces) and sets ``info["filled_sealed"]``."""
+    kept = np.zeros(len(drop), dtype=bool)
+    kept[ids] = True
+    kept, info["filled_sealed"] = fill_sealed(kept, adj)
+    if not info["filled_sealed"]:
+        return ids, removed
+    return np.flatnonzero(kept), int((~kept & ~drop).sum())  # pieces cut off: kept, not dropped
 
 
 def _guarded_by_evidence(mesh: TetMesh, drop, evidence, alpha, plain: tuple, info: dict, config: TopologyConfig):
