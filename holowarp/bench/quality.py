@@ -75,8 +75,7 @@ def _mesh_file(name: str, work: Path) -> tuple[Path, str]:
 def apply_overrides(cfg, overrides):
     """``cfg`` with dotted ``section.field=value`` overrides applied (values parsed as JSON
     when they parse, else kept as strings)."""
-    import dataclasses
-    from dataclasses import fields, replace
+    from dataclasses import fields, is_dataclass, replace
 
     for item in overrides:
         key, _, raw = item.partition("=")
@@ -91,7 +90,7 @@ def apply_overrides(cfg, overrides):
             cfg = replace(cfg, **{parts[0]: value})
         else:
             sec = getattr(cfg, parts[0])
-            if not dataclasses.is_dataclass(sec) or parts[1] not in {f.name for f in fields(sec)}:
+            if not is_dataclass(sec) or parts[1] not in {f.name for f in fields(sec)}:
                 raise ValueError(f"--set {item}: {parts[0]} has no setting {parts[1]!r}")
             cfg = replace(cfg, **{parts[0]: replace(sec, **{parts[1]: tuple(value) if isinstance(value, list) else value})})
     return cfg

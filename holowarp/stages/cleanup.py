@@ -79,8 +79,8 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
         the indices of its tets in the input (tet i of the output is input tet kept[i],
         possibly with two vertices swapped), and a report of every count:
         ``inverted_before_cleanup`` (signed volume <= 0 on entry), ``flipped``, ``dropped``
-        (degenerate, net of those put back), ``dropped_caps`` (boundary slivers and flaps, net of those put back),
-        ``dropped_flaps`` (the flaps among them),
+        (degenerate, net of those put back), ``dropped_caps`` (boundary slivers and flaps,
+        net of those put back), ``dropped_flaps`` (the flaps among them),
         ``caps_restored_for_manifold``, ``components_before``, ``components_removed``,
         ``tets_removed_by_component``, ``tets_removed_for_manifold``, ``filled_sealed``
         (removed tets put back because they sealed a void), ``manifold``,
@@ -124,7 +124,7 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
     info["tets_removed_for_manifold"] = rep["removed_tets"]
     out, _ = TetMesh(mesh.vertices, t[kept], validate=False).remove_unused_vertices()
     out, info["blunt"] = blunt_ridges(out, config, thresh)
-    info["manifold"] = rep["manifold"] if not info["filled_sealed"] else bool(out.manifold()["manifold"])
+    info["manifold"] = rep["manifold"]
     info["components"] = out.num_components()
     info["inverted_after_cleanup"] = int(np.count_nonzero(out.signed_volumes() <= 0))
     info["tets_after"] = out.num_tets
