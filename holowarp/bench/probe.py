@@ -11,8 +11,9 @@
   ``bool`` (ATen's ``_local_scalar_dense``), data-dependent shapes (``nonzero``,
   ``masked_select``, boolean-mask indexing, ``unique``), ``numpy``, ``tolist``, and copies
   off a CUDA device; every tensor made from host data (``torch.tensor``, ``as_tensor`` of
-  a non-tensor, ``from_numpy``) counts as an upload. On CPU none of these block; on CUDA
-  each is a round trip, so they are counted on either device.
+  a non-tensor, ``from_numpy``) counts as an upload, except Warp memory that
+  ``wp.to_torch`` wraps in place. On CPU none of these block; on CUDA each is a round
+  trip, so they are counted on either device.
 
 Instrumentation slows each op down, so the benchmark takes the ms per iteration from a run
 without the probe and only the shares and counts from the probed one.
@@ -33,6 +34,12 @@ __all__ = ["Probe"]
 _SYNC_OPS = {"_local_scalar_dense", "nonzero", "masked_select", "unique", "_unique", "_unique2", "unique_dim",
              "unique_consecutive"}
 _UPLOADS = ("tensor", "as_tensor", "from_numpy")
+
+
+def _device_memory(obj) -> bool:
+    """True for what a tensor can wrap without a copy from the host: a tensor, a Warp array
+    (``wp.to_torch`` on CUDA), or NumPy's view of one (``wp.to_torch`` on the CPU)."""
+    return isinstance(obj, (torch.Tensor, wp.array)) or isinstance(getattr(obj, "base", None), wp.array)
 
 
 class _OpTimer(TorchDispatchMode):
@@ -116,7 +123,7 @@ class Probe:
             if self._active and threading.current_thread() is threading.main_thread():
                 if kind == "sync":
                     self._syncs += 1
-                elif not (args and isinstance(args[0], torch.Tensor)):
+                elif not (args and _device_memory(args[0])):
                     self._uploads += 1
             return orig(*args, **kwargs)
         return wrapper

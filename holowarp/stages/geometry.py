@@ -181,6 +181,10 @@ class GeometryBlock:
         cos = (n * prior).sum(-1) / (n.norm(dim=-1) * prior.norm(dim=-1)).clamp_min(1e-12)
         return ((1.0 - cos) * sel).sum() / sel.sum().clamp_min(1.0)
 
+    def view_of(self, t: int, seed: int) -> int:
+        """The training view of global mesh iteration ``t``: drawn from ``default_rng([seed, 1, t])``."""
+        return int(self.views[np.random.default_rng([seed, 1, t]).integers(len(self.views))])
+
     def step(self, k: int, t: int, seed: int) -> dict:
         """Block step ``k`` (global mesh iteration ``t``) on the view drawn from
         ``default_rng([seed, 1, t])``; returns its loss terms as detached 0-dim tensors
@@ -192,7 +196,7 @@ class GeometryBlock:
         lr = cosine_lr(k, self.block_iters, cfg.lr_start, cfg.lr_end)
         for g in self.opt.param_groups:
             g["lr"] = lr
-        view = int(self.views[np.random.default_rng([seed, 1, t]).integers(len(self.views))])
+        view = self.view_of(t, seed)
         H, W = ds.height, ds.width
         out = rasterize_mesh(x, self.faces, ds.viewmats[view], ds.K[view], W, H)
         l_mask = (out["alpha"] - self.masks[view]).abs().mean()

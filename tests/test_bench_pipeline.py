@@ -1,0 +1,55 @@
+"""The pipeline benchmark's bookkeeping (issue 17): the rasteriser alone is timed on the views
+the timed iterations drew, and the overhead factor is their total over its total."""
+
+from __future__ import annotations
+
+import types
+
+import pytest
+import torch
+
+import holowarp.bench.pipeline as bench
+
+
+def test_phase_times_the_rasteriser_on_the_views_of_the_timed_steps(monkeypatch):
+    # A simulated clock: step i costs its view's rasteriser (1, 2 or 3 ms) plus 2 ms of other
+    # work. A factor taken from one view alone would be 3, 2 or 1.67; the timed views give 2.
+    now = [0.0]
+    monkeypatch.setattr(bench, "time", types.SimpleNamespace(perf_counter=lambda: now[0]))
+    cost = lambda i: 1e-3 * (1 + i % 3)  # noqa: E731
+    stepped, rastered = [], []
+
+    def step(i):
+        stepped.append(i)
+        now[0] += cost(i) + 2e-3
+
+    def raster(i):
+        rastered.append(i)
+        now[0] += cost(i)
+
+    rec = bench._phase("demo", step, 6, 2, raster, torch.device("cpu"), warmup=2)
+    timed = list(range(2, 8))
+    assert stepped == [0, 1, *timed, 8, 9]  # warm-up, timed, probed
+    assert rastered == [2, *timed]  # one warm-up call, then each timed step's view
+    assert rec["overhead_factor"] == pytest.approx(24 / 12, abs=0.01)
+    assert rec["raster_ms"] == pytest.approx(2.0) and rec["ms_per_iter"] == pytest.approx(4.0)
+
+
+def test_probe_counts_host_data_as_uploads_but_not_warp_memory_wrapped_in_place():
+    import numpy as np
+    import warp as wp
+
+    from holowarp.bench.probe import Probe
+
+    rng = np.random.default_rng()
+    host = rng.normal(size=(7, 3)).astype(np.float32)
+    warp_cpu = wp.array(host, dtype=wp.vec3, device="cpu")
+    with Probe("cpu") as probe:
+        with probe.region():
+            torch.tensor(host)  # uploads: host data, three ways
+            torch.as_tensor(host)
+            torch.from_numpy(host)
+            torch.as_tensor(torch.ones(3))  # not an upload: already a tensor
+            wrapped = wp.to_torch(warp_cpu)  # not an upload: Warp's memory, wrapped in place
+    assert probe.summary()["uploads_per_iter"] == 3
+    np.testing.assert_array_equal(wrapped.numpy(), host)
