@@ -495,7 +495,8 @@ def _fill_sealed_voids(ids: np.ndarray, removed: int, drop: np.ndarray, adj: np.
     kept, info["filled_sealed"] = fill_sealed(kept, adj)
     if not info["filled_sealed"]:
         return ids, removed
-    return np.flatnonzero(kept), int((~kept & ~drop).sum())  # pieces cut off: kept, not dropped
+    # Tets neither kept nor dropped for low alpha went with cut-off pieces.
+    return np.flatnonzero(kept), int((~kept & ~drop).sum())
 
 
 def _guarded_by_evidence(mesh: TetMesh, drop, evidence, alpha, plain: tuple, info: dict, config: TopologyConfig):
