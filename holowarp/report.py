@@ -11,7 +11,8 @@ Keys (a contract other tools read): ``preset``, ``device``, ``dataset``, ``resol
 ``held_out`` (``{"test_every", "views"}`` when they were held out of a dataset without its
 own test split, else ``null``), ``mesh_mask_iou`` and ``mesh_surfel_normal_cos`` (the
 mesh against the test views' masks and the surfels' normals, :mod:`holowarp.metrics.views`,
-with ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews``, ``config``,
+with ``mesh_see_through_covered``, the share of the masks' see-through pixels the mesh
+closes, and ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews``, ``config``,
 ``improve`` (the element improvement's section, :func:`holowarp.stages.improve.improve`;
 ``null`` when ``config.improve.enabled`` is off), ``metrics`` (method.md §9) when the
 dataset has a ground-truth mesh, and ``scene`` (method.md §11, :func:`scene_objects`) when
@@ -235,6 +236,7 @@ def _view_results(model, mesh, dataset, prev, history, device) -> dict:
     }
     return {"psnr": psnr, "ssim": ssim, "previews": previews,
             "checks": {"mesh_mask_iou": checks["mesh_mask_iou"], "mesh_surfel_normal_cos": checks["mesh_surfel_normal_cos"],
+                       "mesh_see_through_covered": checks["mesh_see_through_covered"],
                        "mesh_checks_per_view": checks["per_view"]}}
 
 
