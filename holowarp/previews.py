@@ -99,19 +99,30 @@ def _outline(a: np.ndarray) -> np.ndarray:
 
 def preview_silhouettes(path: Path, photos, mesh_alphas, masks, views) -> str:
     """Up to three photos side by side, each with the tet mesh's silhouette overlaid: the
-    mesh region tinted, its outline in green and the mask's outline in magenta, so the two
-    outlines show where they disagree. Labelled with the view and its silhouette IoU."""
+    mesh region tinted green, where it closes a hole the mask sees through tinted red
+    (:func:`holowarp.metrics.views.see_through`: a tunnel or handle the mesh filled), its
+    outline in green and the mask's outline in magenta, so the two outlines show where they
+    disagree. Labelled with the view, its silhouette IoU and the share of the see-through
+    pixels the mesh closes."""
     from PIL import Image
+
+    from holowarp.metrics.views import see_through
 
     tiles = []
     for photo, alpha, mask, v in list(zip(photos, mesh_alphas, masks, views))[:3]:
         a, m = np.asarray(alpha) > 0.5, np.asarray(mask) > 0.5
+        holes = see_through(mask)
+        closed = a & holes
         img = np.asarray(photo, dtype=np.float32)[..., :3].copy()
         img[a] = 0.6 * img[a] + 0.4 * np.array([0.2, 0.8, 0.3])
+        img[closed] = 0.3 * img[closed] + 0.7 * np.array([1.0, 0.1, 0.1])
         img[_outline(m)] = (1.0, 0.1, 0.9)
         img[_outline(a)] = (0.1, 1.0, 0.2)
         union = (a | m).sum()
-        tiles.append(labelled(img, f"view {int(v)}: mesh (green) vs mask (magenta), IoU {(a & m).sum() / max(union, 1):.3f}"))
+        text = f"view {int(v)}: mesh (green) vs mask (magenta), IoU {(a & m).sum() / max(union, 1):.3f}"
+        if holes.any():
+            text += f"\nmesh over the mask's see-through pixels (red): {closed.sum() / holes.sum():.0%}"
+        tiles.append(labelled(img, text))
     canvas = Image.new("RGB", (sum(t.width for t in tiles) + 8 * (len(tiles) - 1), max(t.height for t in tiles)),
                        (255, 255, 255))
     x = 0

@@ -97,3 +97,23 @@ def test_a_mesh_that_closes_the_hole_the_images_show_covers_its_see_through_pixe
     # Without see-through pixels the check has nothing to measure.
     assert mesh_image_checks(closed_views := mesh_renders(_frame(True), ds, [0]), np.ones((1, 64, 64)),
                              closed_views)["mesh_see_through_covered"] is None
+
+
+def test_the_silhouette_preview_paints_red_only_where_the_mesh_closes_a_see_through_hole(tmp_path):
+    from PIL import Image
+
+    from holowarp.previews import preview_silhouettes
+
+    vm = torch.tensor([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 3], [0, 0, 0, 1]], dtype=torch.float32)
+    K = torch.tensor([[90.0, 0, 32], [0, 90.0, 32], [0, 0, 1]], dtype=torch.float32)
+    ds = SimpleNamespace(viewmats=vm[None], K=K[None], width=64, height=64)
+    mask = (mesh_renders(_frame(False), ds, [0])[0]["alpha"] > 0.5).astype(np.float32)
+    photo = np.full((64, 64, 3), 0.5, np.float32)
+
+    def red_pixels(mesh_alpha, name):
+        path = preview_silhouettes(tmp_path / name, [photo], [mesh_alpha], mask[None], [0])
+        img = np.asarray(Image.open(path).convert("RGB"), dtype=np.float32) / 255.0
+        return int(((img[..., 0] > 0.6) & (img[..., 1] < 0.35) & (img[..., 2] < 0.35)).sum())
+
+    assert red_pixels(mask, "own.png") == 0
+    assert red_pixels(mesh_renders(_frame(True), ds, [0])[0]["alpha"], "closed.png") > 100
