@@ -81,22 +81,27 @@ def _frame(filled: bool):
     return box_tetmesh((6, 6, 2), size=(1.0, 1.0, 0.3), origin=(-0.5, -0.5, -0.15), cell_mask=cells)
 
 
-def test_a_mesh_that_closes_the_hole_the_images_show_covers_its_see_through_pixels():
-    # One camera 3 above the slab, looking down -z (OpenCV: x right, y down, z forward).
+def _top_view():
+    """A one-view 64 x 64 dataset: a camera 3 above the slab, looking down -z (OpenCV: x
+    right, y down, z forward)."""
     vm = torch.tensor([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 3], [0, 0, 0, 1]], dtype=torch.float32)
     K = torch.tensor([[90.0, 0, 32], [0, 90.0, 32], [0, 0, 1]], dtype=torch.float32)
-    ds = SimpleNamespace(viewmats=vm[None], K=K[None], width=64, height=64)
+    return SimpleNamespace(viewmats=vm[None], K=K[None], width=64, height=64)
+
+
+def test_a_mesh_that_closes_the_hole_the_images_show_covers_its_see_through_pixels():
+    ds = _top_view()
     frame = mesh_renders(_frame(False), ds, [0])
     mask = (frame[0]["alpha"] > 0.5).astype(np.float32)  # the images: the frame itself
     assert 80 < see_through(mask).sum() < 150  # the hole: (1/3 * 90 / 2.85)^2 ~ 110 px
     own = mesh_image_checks(frame, mask[None], frame)
     assert own["mesh_mask_iou"] == 1.0 and own["mesh_see_through_covered"] == 0.0
-    closed = mesh_image_checks(mesh_renders(_frame(True), ds, [0]), mask[None], frame)
+    slab = mesh_renders(_frame(True), ds, [0])
+    closed = mesh_image_checks(slab, mask[None], frame)
     assert closed["mesh_see_through_covered"] == 1.0
     assert closed["mesh_mask_iou"] < 0.95 and abs(closed["mesh_surfel_normal_cos"]) > 0.99
     # Without see-through pixels the check has nothing to measure.
-    assert mesh_image_checks(closed_views := mesh_renders(_frame(True), ds, [0]), np.ones((1, 64, 64)),
-                             closed_views)["mesh_see_through_covered"] is None
+    assert mesh_image_checks(slab, np.ones((1, 64, 64)), slab)["mesh_see_through_covered"] is None
 
 
 def test_the_silhouette_preview_paints_red_only_where_the_mesh_closes_a_see_through_hole(tmp_path):
@@ -104,9 +109,7 @@ def test_the_silhouette_preview_paints_red_only_where_the_mesh_closes_a_see_thro
 
     from holowarp.previews import preview_silhouettes
 
-    vm = torch.tensor([[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, 3], [0, 0, 0, 1]], dtype=torch.float32)
-    K = torch.tensor([[90.0, 0, 32], [0, 90.0, 32], [0, 0, 1]], dtype=torch.float32)
-    ds = SimpleNamespace(viewmats=vm[None], K=K[None], width=64, height=64)
+    ds = _top_view()
     mask = (mesh_renders(_frame(False), ds, [0])[0]["alpha"] > 0.5).astype(np.float32)
     photo = np.full((64, 64, 3), 0.5, np.float32)
 

@@ -67,9 +67,8 @@ def _cpu_fingerprint() -> str:
         text = open("/proc/cpuinfo", encoding="utf-8").read()
     except OSError:
         return "unknown"
-    fields = dict(
-        (k.strip(), v.strip()) for k, _, v in (line.partition(":") for line in text.splitlines()[:40]) if v
-    )
+    first_cpu = text.split("\n\n")[0]  # every processor block repeats the same model and flags
+    fields = {k.strip(): v.strip() for k, _, v in (line.partition(":") for line in first_cpu.splitlines())}
     flags = sorted(set(fields.get("flags", "").split()) & set(_FINGERPRINT_FLAGS))
     return f"{fields.get('model name', 'unknown')}|{','.join(flags)}"
 

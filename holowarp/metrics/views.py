@@ -54,7 +54,7 @@ def see_through(mask) -> np.ndarray:
     bg = np.asarray(mask) <= 0.5
     labels, _ = ndimage.label(bg)
     border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
-    return bg & ~np.isin(labels, border[border > 0]) & (labels > 0)
+    return bg & ~np.isin(labels, border[border > 0])
 
 
 def mesh_image_checks(mesh_views: list[dict], masks, surfel_views: list[dict]) -> dict:
