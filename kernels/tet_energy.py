@@ -34,6 +34,8 @@ __all__ = [
     "inversion_penalty_kernel",
     "tet_pass_kernel",
     "signed_volume_kernel",
+    "volume_floor_crossing_kernel",
+    "revert_tet_vertices_kernel",
     "hc_umbrella_kernel",
     "hc_face_normal_kernel",
     "hc_target_kernel",
@@ -195,6 +197,12 @@ def tet_pass_kernel(
     inv_energy[e] = _inversion_term(Fe, Dinv, t, p, with_grad, inv_grad_x)
 
 
+@wp.func
+def _signed_volume(x: wp.array(dtype=Any), t: wp.vec4i):
+    a = x[t[0]]
+    return wp.dot(x[t[1]] - a, wp.cross(x[t[2]] - a, x[t[3]] - a)) / type(a[0])(6.0)
+
+
 @wp.kernel(enable_backward=False)
 def signed_volume_kernel(
     x: wp.array(dtype=Any),  # [N] vec3
@@ -202,9 +210,46 @@ def signed_volume_kernel(
     vol: wp.array(dtype=Any),  # [M], out: (b - a) . ((c - a) x (d - a)) / 6
 ):
     e = wp.tid()
+    vol[e] = _signed_volume(x, tets[e])
+
+
+@wp.kernel(enable_backward=False)
+def volume_floor_crossing_kernel(
+    x_new: wp.array(dtype=Any),  # [N] vec3, positions after the step
+    x_old: wp.array(dtype=Any),  # [N] vec3, positions before it
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    floor: wp.array(dtype=Any),  # [M] volume floor of each tet
+    bad: wp.array(dtype=wp.int32),  # [M] out: 1 where the volume was above the floor and is not (NaN included)
+    count: wp.array(dtype=wp.int32),  # [1] += the number of such tets
+):
+    # Both volumes in one pass: the geometry step's inversion guard reads one counter
+    # instead of two volume passes and a reduction (issue 17).
+    e = wp.tid()
     t = tets[e]
-    a = x[t[0]]
-    vol[e] = wp.dot(x[t[1]] - a, wp.cross(x[t[2]] - a, x[t[3]] - a)) / type(a[0])(6.0)
+    f = floor[e]
+    crossed = 0
+    if _signed_volume(x_old, t) > f:
+        if not (_signed_volume(x_new, t) > f):
+            crossed = 1
+            wp.atomic_add(count, 0, 1)
+    bad[e] = crossed
+
+
+@wp.kernel(enable_backward=False)
+def revert_tet_vertices_kernel(
+    bad: wp.array(dtype=wp.int32),  # [M]
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    x_old: wp.array(dtype=Any),  # [N] vec3
+    x_new: wp.array(dtype=Any),  # [N] vec3, in/out: the four vertices of each bad tet put back to x_old
+    reverted: wp.array(dtype=wp.int32),  # [N] in/out: set to 1 for every vertex put back
+):
+    # Several bad tets may share a vertex; they all write the same x_old value, so the race is benign.
+    e = wp.tid()
+    if bad[e] != 0:
+        t = tets[e]
+        for k in range(4):
+            x_new[t[k]] = x_old[t[k]]
+            reverted[t[k]] = 1
 
 
 # --- HC-Laplacian (Vollmer et al. 1999) on the boundary surface -------------------------
@@ -443,6 +488,8 @@ def _register_overloads():
         wp.overload(inversion_penalty_kernel, [aV, a4, aM, T, wp.int32, aT, aV])
         wp.overload(tet_pass_kernel, [aV, a4, aM, T, wp.int32, aM, aT, aV])
         wp.overload(signed_volume_kernel, [aV, a4, aT])
+        wp.overload(volume_floor_crossing_kernel, [aV, aV, a4, aT, ai, ai])
+        wp.overload(revert_tet_vertices_kernel, [ai, a4, aV, aV, ai])
         wp.overload(hc_umbrella_kernel, [aV, aV, ai, ai, ai, T, aV, aV])
         wp.overload(hc_face_normal_kernel, [aV, a3, a3, aV])
         wp.overload(hc_target_kernel, [aV, aV, ai, ai, aV, T, aV, aV])

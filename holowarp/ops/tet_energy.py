@@ -30,6 +30,7 @@ __all__ = [
     "inversion_penalty",
     "tet_energies",
     "signed_volumes",
+    "revert_floor_crossings",
     "hc_targets",
     "hc_energy",
     "eikonal_loss",
@@ -297,6 +298,46 @@ def signed_volumes(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
             wp.launch(K_.signed_volume_kernel, dim=tets.shape[0], inputs=[_vec(x, V), _i(tets.contiguous(), wp.vec4i)],
                       outputs=[to_wp(vol)], device=wp_device(x))
     return vol
+
+
+def revert_floor_crossings(x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, floor: torch.Tensor,
+                           *, max_rounds: int = 20) -> torch.Tensor:
+    """Put back, in place, the four vertices of every tet whose signed volume was above its
+    ``floor`` (M,) at ``x_old`` (N, 3) and is not at ``x_new`` (N, 3; NaN counts as not);
+    repeated until no tet crosses (putting one tet back can push a neighbour under), with a
+    full revert (``x_new = x_old``) after ``max_rounds``.
+
+    Each round is one Warp pass computing both volumes (kernel
+    ``volume_floor_crossing_kernel``) and one read of its crossing counter; a round that
+    finds crossings adds one pass putting their vertices back. Returns the number of
+    vertices put back as a 0-dim int tensor (all N after a full revert)."""
+    _check_x(x_new, "x_new")
+    _check_x(x_old, "x_old")
+    T, V, M = _types(x_new)
+    if not (x_new.is_contiguous() and x_old.dtype == x_new.dtype and floor.shape == (tets.shape[0],)):
+        raise ValueError("revert_floor_crossings: x_new must be contiguous (it is written in place), x_old of its "
+                         f"dtype, floor (M,) = ({tets.shape[0]},); got floor {tuple(floor.shape)}")
+    dev = wp_device(x_new)
+    m = tets.shape[0]
+    reverted = torch.zeros(x_new.shape[0], dtype=torch.int32, device=x_new.device)
+    if m == 0:
+        return reverted.sum()
+    w_new, w_old = _vec(x_new, V), _vec(x_old.detach().contiguous(), V)
+    w_tets, w_floor = _i(tets.contiguous(), wp.vec4i), to_wp(floor.to(x_new.dtype).contiguous())
+    bad = torch.empty(m, dtype=torch.int32, device=x_new.device)
+    count = torch.zeros(1, dtype=torch.int32, device=x_new.device)
+    w_bad, w_count, w_rev = to_wp(bad), to_wp(count), to_wp(reverted)
+    with torch_stream(x_new):
+        for _ in range(max_rounds):
+            wp.launch(K_.volume_floor_crossing_kernel, dim=m, inputs=[w_new, w_old, w_tets, w_floor],
+                      outputs=[w_bad, w_count], device=dev)
+            if int(count[0]) == 0:
+                return reverted.sum()
+            count.zero_()
+            wp.launch(K_.revert_tet_vertices_kernel, dim=m, inputs=[w_bad, w_tets, w_old], outputs=[w_new, w_rev],
+                      device=dev)
+    x_new.copy_(x_old)
+    return torch.tensor(x_new.shape[0], device=x_new.device)
 
 
 # --- HC-Laplacian -----------------------------------------------------------------------

@@ -63,34 +63,28 @@ def signed_volumes_t(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
 
 def revert_inverting_moves(
     x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, *, floor=None, max_rounds: int = 20,
-    old_volumes: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Undo, in place, the moves of vertices whose tets this step inverted or collapsed.
 
-    A tet whose volume at ``x_old`` (or ``old_volumes``, (M,), when the caller has them) was
-    above its ``floor`` (M,) (default 0) and is not at ``x_new`` gets its four vertices put
-    back to ``x_old``; repeated until no tet newly crosses its floor (reverting one tet can
-    push a neighbour under), with a full revert as the last resort. A positive floor (a
-    fraction of each tet's rest volume) keeps slivers from forming: their huge deformation
-    gradients would otherwise dominate the energies.
+    A tet whose volume at ``x_old`` was above its ``floor`` (M,) (default 0) and is not at
+    ``x_new`` gets its four vertices put back to ``x_old``; repeated until no tet newly
+    crosses its floor (reverting one tet can push a neighbour under), with a full revert as
+    the last resort. A positive floor (a fraction of each tet's rest volume) keeps slivers
+    from forming: their huge deformation gradients would otherwise dominate the energies.
 
     Returns:
         the number of vertices reverted, as a 0-dim tensor (read it when convenient: on
-        CUDA each read is a sync). Each round costs one host read of "any tet bad?".
+        CUDA each read is a sync). Each round is one fused Warp pass over the tets and one
+        host read of its counter (:func:`holowarp.ops.tet_energy.revert_floor_crossings`).
     """
+    from holowarp.ops.tet_energy import revert_floor_crossings
+
     with torch.no_grad():
-        f = 0.0 if floor is None else floor
-        was_ok = (signed_volumes_t(x_old, tets) if old_volumes is None else old_volumes) > f
-        reverted = torch.zeros(x_new.shape[0], dtype=torch.bool, device=x_new.device)
-        for _ in range(max_rounds):
-            bad = was_ok & ~(signed_volumes_t(x_new, tets) > f)
-            if not bool(bad.any()):
-                return reverted.sum()
-            idx = tets[bad].reshape(-1)
-            x_new[idx] = x_old[idx]
-            reverted[idx] = True
-        x_new.copy_(x_old)
-        return torch.tensor(x_new.shape[0], device=x_new.device)
+        if floor is None:
+            floor = torch.zeros(tets.shape[0], dtype=x_new.dtype, device=x_new.device)
+        elif not torch.is_tensor(floor) or floor.ndim == 0:
+            floor = torch.full((tets.shape[0],), float(floor), dtype=x_new.dtype, device=x_new.device)
+        return revert_floor_crossings(x_new, x_old, tets, floor, max_rounds=max_rounds)
 
 
 @dataclass
