@@ -363,7 +363,10 @@ def test_prune_removes_low_alpha_tets_and_keeps_the_largest_piece():
     assert emptied["emptied"] and model.num_tets == info["tets_after"]
 
 
-PLAIN = TopologyConfig(genus_guard=False, split_guard=None)  # the prune without its topology guards
+# The prune without its topology guards and pit rule: the tests below carve box meshes in
+# blocks whose inner corners the pit rule would keep (tests/..._fills_the_pits_it_would_dig).
+NO_PITS = TopologyConfig(pit_solid_fraction=1.0)
+PLAIN = replace(NO_PITS, genus_guard=False, split_guard=None)
 
 
 def _model_with_low(mesh, low) -> TetGaussians:
@@ -378,7 +381,7 @@ def test_split_guard_keeps_a_piece_the_views_show_attached():
     c = a.vertices[a.tets].mean(axis=1)
     slab = (c[:, 0] > 2 / 6) & (c[:, 0] < 3 / 6)  # cuts off the piece x < 1/3 (1/3 of the tets)
     piece = c[:, 0] < 2 / 6
-    cfg = TopologyConfig(genus_guard=False, split_guard=0.05)
+    cfg = replace(NO_PITS, genus_guard=False, split_guard=0.05)
     # No view shows the slab empty: the piece stays joined, by as few slab tets as that takes.
     model = _model_with_low(a, slab)
     info = prune(model, cfg, evidence=np.zeros(a.num_tets, bool))
@@ -396,7 +399,7 @@ def test_split_guard_keeps_a_piece_the_views_show_attached():
     corner = (c[:, 0] < 1 / 6) & (c[:, 1] < 1 / 3) & (c[:, 2] < 1 / 3)
     ring = ~corner & (c[:, 0] < 2 / 6) & (c[:, 1] < 2 / 3) & (c[:, 2] < 2 / 3)
     model = _model_with_low(a, ring)
-    info = prune(model, TopologyConfig(split_guard=0.05), evidence=np.zeros(a.num_tets, bool))
+    info = prune(model, replace(NO_PITS, split_guard=0.05), evidence=np.zeros(a.num_tets, bool))
     assert info["kept_for_split"] == 0 and info["tets_removed_by_component"] == int(corner.sum())
     # Without evidence (the guards off) the prune is the plain rule.
     model = _model_with_low(a, slab)
@@ -407,7 +410,7 @@ def test_genus_guard_opens_a_tunnel_only_where_the_views_see_through():
     a = box_tetmesh((5, 5, 3))
     c = a.vertices[a.tets].mean(axis=1)
     bore = (np.abs(c[:, 0] - 0.5) < 0.1) & (np.abs(c[:, 1] - 0.5) < 0.1)  # through z: genus 0 -> 1
-    cfg = TopologyConfig(split_guard=None)
+    cfg = replace(NO_PITS, split_guard=None)
     model = _model_with_low(a, bore)
     info = prune(model, cfg, evidence=np.zeros(a.num_tets, bool))
     # The bore is dug as deep as it goes without opening: a plug of blind tets stays.
@@ -432,7 +435,7 @@ def test_genus_guard_sees_handles_cut_while_tunnels_open():
     plain = prune(model, PLAIN, evidence=hole)
     assert plain["genus_after"] == plain["genus_before"] == 0 and model.mesh().num_components() == 1
     model = _model_with_low(a, hole | cut)
-    info = prune(model, TopologyConfig(split_guard=None), evidence=hole)
+    info = prune(model, replace(NO_PITS, split_guard=None), evidence=hole)
     assert info["genus_after"] == 1 and info["kept_for_genus"] > 0
 
 
@@ -577,8 +580,78 @@ def test_prune_never_opens_sealed_cavities_nor_leaves_a_non_manifold_boundary(rn
     assert info["pruned"] > 0 and info["kept_cavity"] >= int(pocket.sum())
     assert out.boundary_shells() == 1  # no internal void surface
     assert info["low_alpha"] == int(low.sum())
-    assert (info["pruned"] + info["kept_cavity"] + info["kept_dents"] + info["restored_for_manifold"]
-            + info["filled_sealed"]) == info["low_alpha"]
+    assert (info["pruned"] + info["kept_cavity"] + info["kept_dents"] + info["kept_pits"]
+            + info["restored_for_manifold"] + info["filled_sealed"]) == info["low_alpha"]
+
+
+def test_corner_solid_angles_sum_to_the_analytic_values_of_a_cube_mesh(rng):
+    """Around an interior vertex of a tet mesh the corner solid angles sum to 4 pi, on a face
+    of the cube to 2 pi, on an edge to pi, at a corner to pi / 2; a regular tet's corner is
+    arccos(23 / 27). The mesh is jittered so the corners are not all alike."""
+    from holowarp.stages.topology import _corner_solid_angles
+
+    mesh = box_tetmesh((4, 4, 4))
+    V = mesh.vertices.copy()
+    on = np.isclose(V, 0.0) | np.isclose(V, 1.0)  # jitter only along free directions
+    V = V + np.where(on, 0.0, rng.uniform(-0.03, 0.03, V.shape))
+    omega = np.zeros(len(V))
+    np.add.at(omega, mesh.tets.ravel(), _corner_solid_angles(V, mesh.tets).ravel())
+    expected = {0: 4 * np.pi, 1: 2 * np.pi, 2: np.pi, 3: np.pi / 2}
+    np.testing.assert_allclose(omega, [expected[k] for k in on.sum(axis=1)], rtol=1e-9)
+    reg = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=float)
+    np.testing.assert_allclose(_corner_solid_angles(reg, np.array([[0, 1, 2, 3]])), np.arccos(23 / 27), rtol=1e-12)
+
+
+def _pit_fill(mesh: TetMesh, kept: np.ndarray) -> np.ndarray:
+    """Per vertex, the share of the full solid angle its kept tets fill, for the vertices
+    that were interior before and are on the boundary of the kept tets (else 0)."""
+    from holowarp.stages.topology import _corner_solid_angles
+
+    omega = np.zeros(mesh.num_vertices)
+    np.add.at(omega, mesh.tets[kept].ravel(), _corner_solid_angles(mesh.vertices, mesh.tets[kept]).ravel())
+    exposed = np.zeros(mesh.num_vertices, dtype=bool)
+    exposed[TetMesh(mesh.vertices, mesh.tets[kept], validate=False).surface_vertices()] = True
+    exposed[mesh.surface_vertices()] = False
+    return np.where(exposed, omega / (4 * np.pi), 0.0)
+
+
+def test_prune_fills_the_pits_it_would_dig():
+    """Low alpha on a cap one to two tets deep under the top face, wider than the dent rule
+    (a tet with three faces on kept tets) sees: the plain prune digs it and leaves a dozen
+    vertices more than 3/4 enclosed by kept tets (pits; the later prunes of bob dug such
+    pits 0.03-0.05 deep on smooth flanks). The pit rule keeps the tets around them, round by
+    round: after its 3 default rounds at most one is left, with the tets it kept counted,
+    and given rounds enough none, the cap filled."""
+    mesh = box_tetmesh((8, 8, 8))
+    c = mesh.vertices[mesh.tets].mean(axis=1)
+    low = np.linalg.norm(c - np.array([0.5, 0.5, 1.12]), axis=1) < 0.3
+
+    def run(**kw):
+        model = _model_with_low(mesh, low)
+        info = prune(model, replace(PLAIN, **kw))
+        kept = _kept_mask(mesh, model.mesh())
+        assert model.mesh().manifold()["manifold"] and model.mesh().boundary_shells() == 1
+        assert int((low & kept).sum()) == info["kept_pits"] + info["kept_dents"] + info["restored_for_manifold"] \
+            + info["kept_cavity"] + info["filled_sealed"]
+        return info, _pit_fill(mesh, kept)
+
+    info, fill = run(pit_solid_fraction=1.0)
+    assert info["kept_pits"] == 0 and info["pruned"] > 0.9 * low.sum()
+    assert (fill > 0.75).sum() >= 10 and fill.max() > 0.9
+    info, fill = run(pit_solid_fraction=0.75)
+    assert info["kept_pits"] > 0 and (fill > 0.75).sum() <= 1
+    info, fill = run(pit_solid_fraction=0.75, pit_rounds=50)
+    assert info["pruned"] == 0 and fill.max() == 0.0
+
+
+def _kept_mask(mesh: TetMesh, out: TetMesh) -> np.ndarray:
+    """Which tets of ``mesh`` survive in ``out`` (the prune keeps vertex positions, stored in
+    float32, so they are compared to 1e-5)."""
+    def keys(V, T):
+        return [tuple(sorted(map(tuple, np.round(np.asarray(V[t], np.float64), 5)))) for t in T]
+
+    have = set(keys(out.vertices, out.tets))
+    return np.array([k in have for k in keys(mesh.vertices, mesh.tets)])
 
 
 def test_prune_fills_the_voids_its_guards_seal(rng):
@@ -696,3 +769,10 @@ def test_preflight_accepts_a_thin_plate_that_falls_between_the_coarse_nodes():
     coarse = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3) + focus
     assert inside_hull(ds, coarse, ds.train_idx).sum() < 4  # the case the retry is for
     preflight(ds)
+
+
+@pytest.mark.parametrize("bad", [{"pit_solid_fraction": 0.4}, {"pit_solid_fraction": 1.5},
+                                 {"pit_solid_fraction": "0.75"}, {"pit_rounds": -1}, {"pit_rounds": 2.5}])
+def test_pit_settings_out_of_range_are_refused_by_name(bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        TopologyConfig(**bad)
