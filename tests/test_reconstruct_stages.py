@@ -621,14 +621,14 @@ def test_prune_fills_the_pits_it_would_dig():
     vertices more than 3/4 enclosed by kept tets (pits; the later prunes of bob dug such
     pits 0.03-0.05 deep on smooth flanks). The pit rule keeps the tets around them, round by
     round: after its 3 default rounds at most one is left, with the tets it kept counted,
-    and given rounds enough none, the cap filled."""
+    and given rounds enough none, the cap filled, unless the views show the cap empty."""
     mesh = box_tetmesh((8, 8, 8))
     c = mesh.vertices[mesh.tets].mean(axis=1)
     low = np.linalg.norm(c - np.array([0.5, 0.5, 1.12]), axis=1) < 0.3
 
-    def run(**kw):
+    def run(evidence=None, **kw):
         model = _model_with_low(mesh, low)
-        info = prune(model, replace(PLAIN, **kw))
+        info = prune(model, replace(PLAIN, **kw), evidence=evidence)
         kept = _kept_mask(mesh, model.mesh())
         assert model.mesh().manifold()["manifold"] and model.mesh().boundary_shells() == 1
         assert int((low & kept).sum()) == info["kept_pits"] + info["kept_dents"] + info["restored_for_manifold"] \
@@ -642,6 +642,13 @@ def test_prune_fills_the_pits_it_would_dig():
     assert info["kept_pits"] > 0 and (fill > 0.75).sum() <= 1
     info, fill = run(pit_solid_fraction=0.75, pit_rounds=50)
     assert info["pruned"] == 0 and fill.max() == 0.0
+    # A dent the views show empty (the prune's evidence) is carved: the rule keeps none of it.
+    info, fill = run(evidence=low, pit_solid_fraction=0.75, pit_rounds=50, genus_guard=True)
+    assert info["kept_pits"] == 0 and (fill > 0.75).sum() >= 10
+    # Evidence on half of the cap: only the other half can be kept.
+    half = low & (c[:, 0] < 0.5)
+    info, _ = run(evidence=half, pit_solid_fraction=0.75, pit_rounds=50, genus_guard=True)
+    assert 0 < info["kept_pits"] <= int((low & ~half).sum())
 
 
 def _kept_mask(mesh: TetMesh, out: TetMesh) -> np.ndarray:

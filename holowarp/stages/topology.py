@@ -413,7 +413,8 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
       tets stays (repeated a few times);
     - pruning never digs pits: a vertex the prune would expose while its kept tets still
       fill more than ``pit_solid_fraction`` of the full solid angle around it keeps its
-      tets (a multi-tet dent the face rule misses);
+      tets (a multi-tet dent the face rule misses), except the tets some view shows to be
+      empty (``evidence``): those go, so a dent the images show is still carved;
     - pruning never makes the boundary non-manifold: the pruned tets around any
       non-manifold edge or vertex are restored, repeatedly, until the boundary is a
       manifold. Restoring every pruned tet gives back the (manifold) mesh before the
@@ -465,7 +466,8 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
     info["raw_components"] = int(raw.num_components())
     info["raw_non_manifold"] = int(len(raw.non_manifold_edges()) + len(raw.non_manifold_vertices()))
     info["kept_dents"] = _keep_dents(drop, adj, config)
-    info["kept_pits"] = _keep_pits(mesh, drop, config)
+    seen_empty = np.asarray(evidence, dtype=bool) if evidence is not None and config.uses_evidence else None
+    info["kept_pits"] = _keep_pits(mesh, drop, config, seen_empty)
     keep, ids, n, removed, n_kept = _guarded_keep(mesh, drop, info, config.min_component)
     info["genus_before"] = int(mesh.genus())
     info["kept_for_genus"] = info["kept_for_split"] = 0
@@ -575,11 +577,14 @@ def _corner_solid_angles(V: np.ndarray, T: np.ndarray) -> np.ndarray:
     return out
 
 
-def _keep_pits(mesh: TetMesh, drop: np.ndarray, config: TopologyConfig) -> int:
+def _keep_pits(mesh: TetMesh, drop: np.ndarray, config: TopologyConfig, seen_empty: np.ndarray | None = None) -> int:
     """Take out of ``drop`` (in place) the tets around vertices the prune would leave in a
     pit; returns how many. A vertex is in a pit when it is interior now, would be on the
     boundary after the prune, and its kept tets fill more than ``pit_solid_fraction`` of the
-    4 pi steradians around it (a shallow hole one vertex deep)."""
+    4 pi steradians around it (the bottom of a hole one or two tets deep). A tet some view
+    shows to be empty (``seen_empty`` (M,) bool, the prune's evidence) is never kept: a dent
+    the images show (the dented box's, in front of the stage-0 surface) is carved, a pit
+    only low opacities dig is not."""
     if config.pit_solid_fraction >= 1.0:
         return 0
     T, N = mesh.tets, mesh.num_vertices
@@ -594,6 +599,8 @@ def _keep_pits(mesh: TetMesh, drop: np.ndarray, config: TopologyConfig) -> int:
         exposed[T[drop].ravel()] = True
         pit = interior & exposed & (kept > config.pit_solid_fraction * 4.0 * np.pi)
         back = drop & pit[T].any(axis=1)
+        if seen_empty is not None:
+            back &= ~seen_empty
         if not back.any():
             break
         drop &= ~back
