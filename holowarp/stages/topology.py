@@ -413,8 +413,7 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
       tets stays (repeated a few times);
     - pruning never digs pits: a vertex the prune would expose while its kept tets still
       fill more than ``pit_solid_fraction`` of the full solid angle around it keeps its
-      tets (a multi-tet dent the face rule misses), except the tets some view shows to be
-      empty (``evidence``): those go, so a dent the images show is still carved;
+      tets (a multi-tet dent the face rule misses), except tets ``evidence`` shows empty;
     - pruning never makes the boundary non-manifold: the pruned tets around any
       non-manifold edge or vertex are restored, repeatedly, until the boundary is a
       manifold. Restoring every pruned tet gives back the (manifold) mesh before the
@@ -466,8 +465,7 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict
     info["raw_components"] = int(raw.num_components())
     info["raw_non_manifold"] = int(len(raw.non_manifold_edges()) + len(raw.non_manifold_vertices()))
     info["kept_dents"] = _keep_dents(drop, adj, config)
-    seen_empty = np.asarray(evidence, dtype=bool) if evidence is not None and config.uses_evidence else None
-    info["kept_pits"] = _keep_pits(mesh, drop, config, seen_empty)
+    info["kept_pits"] = _keep_pits(mesh, drop, config, evidence if config.uses_evidence else None)
     keep, ids, n, removed, n_kept = _guarded_keep(mesh, drop, info, config.min_component)
     info["genus_before"] = int(mesh.genus())
     info["kept_for_genus"] = info["kept_for_split"] = 0
@@ -600,7 +598,7 @@ def _keep_pits(mesh: TetMesh, drop: np.ndarray, config: TopologyConfig, seen_emp
         pit = interior & exposed & (kept > config.pit_solid_fraction * 4.0 * np.pi)
         back = drop & pit[T].any(axis=1)
         if seen_empty is not None:
-            back &= ~seen_empty
+            back &= ~np.asarray(seen_empty, dtype=bool)
         if not back.any():
             break
         drop &= ~back
