@@ -267,9 +267,9 @@ class _TetEnergies(torch.autograd.Function):
         tets_wp, dm_wp, F_wp = _i(tets, wp.vec4i), _mat(dm_inv, M), _mat(F, M)
         with torch_stream(x):
             _launch(K_.tet_pass_kernel, dim=m, inputs=[_vec(x, V), tets_wp, dm_wp, T(p), int(need)],
-                      outputs=[F_wp, to_wp(e_inv), _vec(g_inv, V)], device=dev)
+                   outputs=[F_wp, to_wp(e_inv), _vec(g_inv, V)], device=dev)
             _launch(K_.biharmonic_forward_kernel, dim=m, inputs=[F_wp, _i(adjacency, wp.vec4i), to_wp(weights)],
-                      outputs=[_mat(LF, M), to_wp(e_bih)], device=dev)
+                   outputs=[_mat(LF, M), to_wp(e_bih)], device=dev)
         ctx.save_for_backward(tets, adjacency, weights, LF, dm_inv, g_inv)
         ctx.num_vertices = x.shape[0]
         return e_bih.sum(), e_inv.sum()
@@ -283,8 +283,8 @@ class _TetEnergies(torch.autograd.Function):
             g = g_bih.reshape(1).to(LF.dtype).contiguous()
             with torch_stream(LF):
                 _launch(K_.biharmonic_backward_kernel, dim=tets.shape[0],
-                          inputs=[_i(tets, wp.vec4i), _i(adjacency, wp.vec4i), to_wp(weights), _mat(LF, M),
-                                  _mat(dm_inv, M), to_wp(g)], outputs=[_vec(grad_x, V)], device=wp_device(LF))
+                       inputs=[_i(tets, wp.vec4i), _i(adjacency, wp.vec4i), to_wp(weights), _mat(LF, M),
+                               _mat(dm_inv, M), to_wp(g)], outputs=[_vec(grad_x, V)], device=wp_device(LF))
         if g_inv_out is not None and g_inv.shape == grad_x.shape:
             grad_x += g_inv * g_inv_out
         return grad_x, None, None, None, None, None
@@ -312,7 +312,7 @@ def signed_volumes(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
     if tets.shape[0]:
         with torch_stream(x):
             _launch(K_.signed_volume_kernel, dim=tets.shape[0], inputs=[_vec(x, V), _i(tets.contiguous(), wp.vec4i)],
-                      outputs=[to_wp(vol)], device=wp_device(x))
+                   outputs=[to_wp(vol)], device=wp_device(x))
     return vol
 
 
@@ -346,12 +346,12 @@ def revert_floor_crossings(x_new: torch.Tensor, x_old: torch.Tensor, tets: torch
     with torch_stream(x_new):
         for _ in range(max_rounds):
             _launch(K_.volume_floor_crossing_kernel, dim=m, inputs=[w_new, w_old, w_tets, w_floor],
-                      outputs=[w_bad, w_count], device=dev)
+                   outputs=[w_bad, w_count], device=dev)
             if int(count[0]) == 0:
                 return reverted.sum()
             count.zero_()
             _launch(K_.revert_tet_vertices_kernel, dim=m, inputs=[w_bad, w_tets, w_old], outputs=[w_new, w_rev],
-                      device=dev)
+                   device=dev)
     x_new.copy_(x_old)
     return torch.tensor(x_new.shape[0], device=x_new.device)
 
@@ -439,12 +439,12 @@ def hc_targets(x, topo: HCTopology, *, x_orig=None, alpha: float = 0.0, beta: fl
     sid, off, nid = _i(topo.surf_ids), _i(topo.nbr_offsets), _i(topo.nbr_ids)
     with torch_stream(x):
         _launch(K_.hc_umbrella_kernel, dim=S, inputs=[_vec(x, V), _vec(xo, V), sid, off, nid, T(alpha)],
-                  outputs=[_vec(p, V), _vec(b, V)], device=dev)
+               outputs=[_vec(p, V), _vec(b, V)], device=dev)
         _launch(K_.hc_face_normal_kernel, dim=topo.faces_global.shape[0],
-                  inputs=[_vec(x, V), _i(topo.faces_global, wp.vec3i), _i(topo.faces_local, wp.vec3i)],
-                  outputs=[_vec(nacc, V)], device=dev)
+               inputs=[_vec(x, V), _i(topo.faces_global, wp.vec3i), _i(topo.faces_local, wp.vec3i)],
+               outputs=[_vec(nacc, V)], device=dev)
         _launch(K_.hc_target_kernel, dim=S, inputs=[_vec(p, V), _vec(b, V), off, nid, _vec(nacc, V), T(beta)],
-                  outputs=[_vec(target, V), _vec(normal, V)], device=dev)
+               outputs=[_vec(target, V), _vec(normal, V)], device=dev)
     return target, normal
 
 
@@ -578,9 +578,9 @@ def phi_edge_losses(phi: torch.Tensor, edges: torch.Tensor, x: torch.Tensor):
     g_smooth = torch.zeros(n, dtype=x.dtype, device=x.device)
     with torch_stream(x):
         _launch(K_.phi_edge_kernel, dim=E,
-                  inputs=[to_wp(phi_c), _vec(x.detach().contiguous(), V), _i(edges.contiguous(), wp.vec2i), T(1.0 / E),
-                          int(need)],
-                  outputs=[to_wp(eik), to_wp(smooth), to_wp(g_eik), to_wp(g_smooth)], device=wp_device(x))
+               inputs=[to_wp(phi_c), _vec(x.detach().contiguous(), V), _i(edges.contiguous(), wp.vec2i), T(1.0 / E),
+                       int(need)],
+               outputs=[to_wp(eik), to_wp(smooth), to_wp(g_eik), to_wp(g_smooth)], device=wp_device(x))
     l_eik, l_smooth = eik.mean(), smooth.mean()
     if not need:
         return l_eik, l_smooth

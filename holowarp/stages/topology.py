@@ -586,6 +586,8 @@ def _keep_pits(mesh: TetMesh, drop: np.ndarray, config: TopologyConfig, seen_emp
     if config.pit_solid_fraction >= 1.0:
         return 0
     T, N = mesh.tets, mesh.num_vertices
+    if seen_empty is not None:
+        seen_empty = np.asarray(seen_empty, dtype=bool)
     omega = _corner_solid_angles(mesh.vertices, T)
     interior = np.ones(N, dtype=bool)
     interior[mesh.surface_vertices()] = False
@@ -598,7 +600,7 @@ def _keep_pits(mesh: TetMesh, drop: np.ndarray, config: TopologyConfig, seen_emp
         pit = interior & exposed & (kept > config.pit_solid_fraction * 4.0 * np.pi)
         back = drop & pit[T].any(axis=1)
         if seen_empty is not None:
-            back &= ~np.asarray(seen_empty, dtype=bool)
+            back &= ~seen_empty
         if not back.any():
             break
         drop &= ~back
