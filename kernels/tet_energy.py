@@ -35,6 +35,7 @@ __all__ = [
     "tet_pass_kernel",
     "signed_volume_kernel",
     "volume_floor_crossing_kernel",
+    "incident_floor_crossing_kernel",
     "revert_tet_vertices_kernel",
     "hc_umbrella_kernel",
     "hc_face_normal_kernel",
@@ -236,20 +237,51 @@ def volume_floor_crossing_kernel(
 
 
 @wp.kernel(enable_backward=False)
+def incident_floor_crossing_kernel(
+    x_new: wp.array(dtype=Any),  # [N] vec3, positions after the step (some put back)
+    x_old: wp.array(dtype=Any),  # [N] vec3, positions before it
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    floor: wp.array(dtype=Any),  # [M] volume floor of each tet
+    offsets: wp.array(dtype=wp.int32),  # [N + 1] CSR offsets of each vertex's tets
+    incident: wp.array(dtype=wp.int32),  # [4 M] tet ids, grouped by vertex
+    stamp: wp.array(dtype=wp.int32),  # [N] the round in which each vertex was last put back (0: never)
+    last_round: int,  # the round whose put-backs are checked
+    bad: wp.array(dtype=wp.int32),  # [M] in/out: set to 1 for each tet that now crosses its floor
+    count: wp.array(dtype=wp.int32),  # [1] += one per (vertex, crossing tet) pair found
+):
+    # After a round of put-backs only the tets of the vertices it put back can have changed
+    # volume, so later rounds check those alone instead of every tet (issue 17). A tet seen
+    # from several such vertices is flagged several times, which is benign.
+    v = wp.tid()
+    if stamp[v] != last_round:
+        return
+    for j in range(offsets[v], offsets[v + 1]):
+        e = incident[j]
+        t = tets[e]
+        f = floor[e]
+        if _signed_volume(x_old, t) > f:
+            if not (_signed_volume(x_new, t) > f):
+                bad[e] = 1
+                wp.atomic_add(count, 0, 1)
+
+
+@wp.kernel(enable_backward=False)
 def revert_tet_vertices_kernel(
-    bad: wp.array(dtype=wp.int32),  # [M]
+    bad: wp.array(dtype=wp.int32),  # [M] in/out: cleared after its tet is put back
     tets: wp.array(dtype=wp.vec4i),  # [M]
     x_old: wp.array(dtype=Any),  # [N] vec3
+    round_: int,  # this round's number, >= 1
     x_new: wp.array(dtype=Any),  # [N] vec3, in/out: the four vertices of each bad tet put back to x_old
-    reverted: wp.array(dtype=wp.int32),  # [N] in/out: set to 1 for every vertex put back
+    stamp: wp.array(dtype=wp.int32),  # [N] in/out: set to round_ for every vertex put back
 ):
-    # Several bad tets may share a vertex; they all write the same x_old value, so the race is benign.
+    # Several bad tets may share a vertex; they all write the same values, so the race is benign.
     e = wp.tid()
     if bad[e] != 0:
         t = tets[e]
         for k in range(4):
             x_new[t[k]] = x_old[t[k]]
-            reverted[t[k]] = 1
+            stamp[t[k]] = round_
+        bad[e] = 0
 
 
 # --- HC-Laplacian (Vollmer et al. 1999) on the boundary surface -------------------------
@@ -489,7 +521,8 @@ def _register_overloads():
         wp.overload(tet_pass_kernel, [aV, a4, aM, T, wp.int32, aM, aT, aV])
         wp.overload(signed_volume_kernel, [aV, a4, aT])
         wp.overload(volume_floor_crossing_kernel, [aV, aV, a4, aT, ai, ai])
-        wp.overload(revert_tet_vertices_kernel, [ai, a4, aV, aV, ai])
+        wp.overload(incident_floor_crossing_kernel, [aV, aV, a4, aT, ai, ai, ai, wp.int32, ai, ai])
+        wp.overload(revert_tet_vertices_kernel, [ai, a4, aV, wp.int32, aV, ai])
         wp.overload(hc_umbrella_kernel, [aV, aV, ai, ai, ai, T, aV, aV])
         wp.overload(hc_face_normal_kernel, [aV, a3, a3, aV])
         wp.overload(hc_target_kernel, [aV, aV, ai, ai, aV, T, aV, aV])

@@ -31,6 +31,7 @@ __all__ = [
     "tet_energies",
     "signed_volumes",
     "revert_floor_crossings",
+    "vertex_tets",
     "hc_targets",
     "hc_energy",
     "eikonal_loss",
@@ -316,16 +317,31 @@ def signed_volumes(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
     return vol
 
 
+def vertex_tets(tets: torch.Tensor, num_vertices: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The tets of each vertex as CSR: ``offsets`` (N + 1,) int32 and ``incident`` (4 M,)
+    int32 tet ids, vertex ``v``'s in ``incident[offsets[v]:offsets[v + 1]]`` in increasing
+    order; for :func:`revert_floor_crossings` (build it once per mesh)."""
+    flat = tets.reshape(-1).long()
+    order = torch.argsort(flat, stable=True)
+    counts = torch.bincount(flat, minlength=int(num_vertices))
+    offsets = torch.zeros(int(num_vertices) + 1, dtype=torch.int64, device=tets.device)
+    offsets[1:] = torch.cumsum(counts, 0)
+    return offsets.to(torch.int32), (order // 4).to(torch.int32)
+
+
 def revert_floor_crossings(x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, floor: torch.Tensor,
-                           *, max_rounds: int = 20) -> torch.Tensor:
+                           *, max_rounds: int = 20, incidence=None) -> torch.Tensor:
     """Put back, in place, the four vertices of every tet whose signed volume was above its
     ``floor`` (M,) at ``x_old`` (N, 3) and is not at ``x_new`` (N, 3; NaN counts as not);
     repeated until no tet crosses (putting one tet back can push a neighbour under), with a
     full revert (``x_new = x_old``) after ``max_rounds``.
 
-    Each round is one Warp pass computing both volumes (kernel
-    ``volume_floor_crossing_kernel``) and one read of its crossing counter; a round that
-    finds crossings adds one pass putting their vertices back. Returns the number of
+    The first round is one Warp pass over all tets computing both volumes (kernel
+    ``volume_floor_crossing_kernel``); with ``incidence`` (:func:`vertex_tets` of ``tets``)
+    each later round checks only the tets of the vertices the round before put back
+    (``incident_floor_crossing_kernel``, the same tets found: no other tet's volume
+    changed), else every tet again. Each round reads its crossing counter once; a round
+    that finds crossings adds one pass putting their vertices back. Returns the number of
     vertices put back as a 0-dim int tensor (all N after a full revert)."""
     _check_x(x_new, "x_new")
     _check_x(x_old, "x_old")
@@ -335,23 +351,29 @@ def revert_floor_crossings(x_new: torch.Tensor, x_old: torch.Tensor, tets: torch
                          f"dtype, floor (M,) = ({tets.shape[0]},); got floor {tuple(floor.shape)}")
     dev = wp_device(x_new)
     m = tets.shape[0]
-    reverted = torch.zeros(x_new.shape[0], dtype=torch.int32, device=x_new.device)
+    stamp = torch.zeros(x_new.shape[0], dtype=torch.int32, device=x_new.device)
     if m == 0:
-        return reverted.sum()
+        return stamp.sum()
     w_new, w_old = _vec(x_new, V), _vec(x_old.detach().contiguous(), V)
     w_tets, w_floor = _i(tets.contiguous(), wp.vec4i), to_wp(floor.to(x_new.dtype).contiguous())
     bad = torch.empty(m, dtype=torch.int32, device=x_new.device)
     count = torch.zeros(1, dtype=torch.int32, device=x_new.device)
-    w_bad, w_count, w_rev = to_wp(bad), to_wp(count), to_wp(reverted)
+    w_bad, w_count, w_stamp = to_wp(bad), to_wp(count), to_wp(stamp)
+    local = None if incidence is None else (to_wp(incidence[0]), to_wp(incidence[1]))
     with torch_stream(x_new):
-        for _ in range(max_rounds):
-            _launch(K_.volume_floor_crossing_kernel, dim=m, inputs=[w_new, w_old, w_tets, w_floor],
-                   outputs=[w_bad, w_count], device=dev)
+        for r in range(1, max_rounds + 1):
+            if r == 1 or local is None:
+                _launch(K_.volume_floor_crossing_kernel, dim=m, inputs=[w_new, w_old, w_tets, w_floor],
+                        outputs=[w_bad, w_count], device=dev)
+            else:
+                _launch(K_.incident_floor_crossing_kernel, dim=x_new.shape[0],
+                        inputs=[w_new, w_old, w_tets, w_floor, *local, w_stamp, r - 1], outputs=[w_bad, w_count],
+                        device=dev)
             if int(count[0]) == 0:
-                return reverted.sum()
+                return (stamp > 0).sum()
             count.zero_()
-            _launch(K_.revert_tet_vertices_kernel, dim=m, inputs=[w_bad, w_tets, w_old], outputs=[w_new, w_rev],
-                   device=dev)
+            _launch(K_.revert_tet_vertices_kernel, dim=m, inputs=[w_bad, w_tets, w_old, r], outputs=[w_new, w_stamp],
+                    device=dev)
     x_new.copy_(x_old)
     return torch.tensor(x_new.shape[0], device=x_new.device)
 

@@ -62,7 +62,7 @@ def signed_volumes_t(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
 
 
 def revert_inverting_moves(
-    x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, *, floor=None, max_rounds: int = 20,
+    x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, *, floor=None, max_rounds: int = 20, incidence=None,
 ) -> torch.Tensor:
     """Undo, in place, the moves of vertices whose tets this step inverted or collapsed.
 
@@ -72,10 +72,13 @@ def revert_inverting_moves(
     the last resort. A positive floor (a fraction of each tet's rest volume) keeps slivers
     from forming: their huge deformation gradients would otherwise dominate the energies.
 
+    ``incidence``: :func:`holowarp.ops.tet_energy.vertex_tets` of ``tets``; with it the
+    rounds after the first check only the tets of the vertices just put back.
+
     Returns:
         the number of vertices reverted, as a 0-dim tensor (read it when convenient: on
-        CUDA each read is a sync). Each round is one fused Warp pass over the tets and one
-        host read of its counter (:func:`holowarp.ops.tet_energy.revert_floor_crossings`).
+        CUDA each read is a sync). Each round is one fused Warp pass and one host read of
+        its counter (:func:`holowarp.ops.tet_energy.revert_floor_crossings`).
     """
     from holowarp.ops.tet_energy import revert_floor_crossings
 
@@ -84,7 +87,7 @@ def revert_inverting_moves(
             floor = torch.zeros(tets.shape[0], dtype=x_new.dtype, device=x_new.device)
         elif not torch.is_tensor(floor) or floor.ndim == 0:
             floor = torch.full((tets.shape[0],), float(floor), dtype=x_new.dtype, device=x_new.device)
-        return revert_floor_crossings(x_new, x_old, tets, floor, max_rounds=max_rounds)
+        return revert_floor_crossings(x_new, x_old, tets, floor, max_rounds=max_rounds, incidence=incidence)
 
 
 @dataclass
@@ -122,6 +125,7 @@ class GeometryBlock:
     def __init__(self, model: TetGaussians, dataset, views, config: GeometryConfig, *, block_iters: int,
                  total_mesh_iters: int, rest_vertices=None, optimizer_state: dict | None = None):
         from holowarp.energies import TetEnergies
+        from holowarp.ops.tet_energy import vertex_tets
         from holowarp.optim import UniformAdam
 
         self.model, self.dataset, self.views, self.cfg = model, dataset, np.asarray(views), config
@@ -148,6 +152,7 @@ class GeometryBlock:
         self.cache: dict = {}
         with torch.no_grad():
             self.floor = config.min_volume_fraction * signed_volumes_t(self.rest, model.tets).clamp_min(0)
+        self.incidence = vertex_tets(model.tets, model.num_vertices)
         self.reverted = 0
 
     def surfel_normals(self, view: int):
@@ -216,7 +221,8 @@ class GeometryBlock:
         loss.backward()
         x_old = x.detach().clone()
         self.opt.step()
-        self.reverted = self.reverted + revert_inverting_moves(x.data, x_old, self.model.tets, floor=self.floor)
+        self.reverted = self.reverted + revert_inverting_moves(x.data, x_old, self.model.tets, floor=self.floor,
+                                                                 incidence=self.incidence)
         terms = {"loss": loss, "mask": l_mask, "norm": l_norm, "hc": l_hc, "w": l_w, "inv": l_inv}
         if l_prior is not None:
             terms["prior"] = l_prior
