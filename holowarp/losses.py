@@ -27,6 +27,7 @@ __all__ = [
     "depth_to_normal",
     "normal_consistency_loss",
     "distortion_loss",
+    "one_minus_cos",
     "ranked_loss",
     "ranked_normal_loss",
 ]
@@ -116,6 +117,11 @@ def normal_consistency_loss(
     if weight is not None:
         err = err * weight
     return err.mean()
+
+
+def one_minus_cos(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Per-pixel ``1 - cos(a, b)`` of two normal maps [H, W, 3] (need not be unit length)."""
+    return 1.0 - (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-12)
 
 
 def distortion_loss(distortion: torch.Tensor, *, weight: torch.Tensor | None = None) -> torch.Tensor:

@@ -725,6 +725,19 @@ def test_depth_carving_empties_a_dent_the_silhouettes_fill_and_keeps_the_solid()
     assert hull[in_dent].mean() > 0.9  # silhouettes cannot see the dent
     assert carved[in_dent & hull].mean() > 0.9  # depth does
     assert not carved[in_solid].any()
+    # The initial field (phi_init "depth_hull", the default) starts with the dent empty;
+    # the visual hull's, and the default without depth maps, start with it full.
+    mesh = box_tetmesh((12, 12, 12), size=(1.0, 1.0, 1.0), origin=(-0.5, -0.5, -0.5))
+    X = mesh.vertices
+    # (vertices one mean edge, the carve's margin, clear of the dent's surface at radius 0.39)
+    dent = (np.linalg.norm(X - [0.0, 0.0, 0.42], axis=1) < 0.27) & (X[:, 2] < 0.26)
+    solid = (np.abs(X) < [0.4, 0.35, 0.25]).all(axis=1) & (np.linalg.norm(X - [0.0, 0.0, 0.42], axis=1) > 0.42)
+    assert dent.sum() > 20 and solid.sum() > 50
+    phi = init_phi(mesh, ds, ds.train_idx, TopologyConfig(), depth_maps=(depths, alphas))
+    assert (phi[dent] > 0).mean() > 0.8 and (phi[solid] < 0).all()  # (near the rim some views see no depth gap)
+    for hull_only in (init_phi(mesh, ds, ds.train_idx, TopologyConfig(phi_init="visual_hull"), depth_maps=(depths, alphas)),
+                      init_phi(mesh, ds, ds.train_idx, TopologyConfig())):
+        assert (hull_only[dent] < 0).mean() > 0.9 and (hull_only[solid] < 0).all()
 
 
 def test_surfels_follow_the_element_improvement_through_the_parent_map(rng):

@@ -8,6 +8,12 @@ with the Warp surfel rasteriser and the loss is
     + mask_weight     |alpha - mask|
     + normal_weight   (1 - <n_rendered, n_depth * alpha>)  2DGS normal consistency, from normal_from
     + dist_weight     distortion                           2DGS depth distortion, from dist_from
+    + prior_weight    L_prior                              against the dataset's normal maps, if any
+
+with ``L_prior`` the mean over covered pixels (alpha > 0.5) of ``(1 - cos(n_prior, n_rendered))
++ (1 - cos(n_prior, n_depth))``, the term §5's ``L_render`` uses with the same weight. The
+depth-normal half moves the surfels themselves, so stage 0's surface follows concavities that
+silhouettes and smooth shading do not pin down, and its depth carves them (issue 12).
 
 with the adaptive density control of 3DGS/2DGS: surfels with a large mean screen-space
 gradient are cloned (small) or split (large), low-opacity ones pruned, opacities reset
@@ -44,6 +50,7 @@ from holowarp.losses import (
     l1_dssim_loss,
     mask_loss,
     normal_consistency_loss,
+    one_minus_cos,
 )
 from holowarp.metrics.image import psnr, ssim
 from holowarp.progress import bar as progress_bar
@@ -152,6 +159,8 @@ class _Trainer:
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=device)
         self.targets = torch.from_numpy(np.ascontiguousarray(dataset.composite(cfg.background), dtype=np.float32)).to(device)
         self.masks = torch.from_numpy(np.ascontiguousarray(dataset.masks, dtype=np.float32)).to(device)
+        self.normals = (torch.from_numpy(np.ascontiguousarray(dataset.normals, dtype=np.float32)).to(device)
+                        if dataset.normals is not None and cfg.prior_weight > 0 else None)
         self.Ks = torch.from_numpy(dataset.K).double()
         self.Vs = torch.from_numpy(dataset.viewmats).double()
         self.ckpt_path = out / "checkpoint.pt"
@@ -220,7 +229,17 @@ class _Trainer:
             loss = loss + cfg.normal_weight * normal_consistency_loss(o["normal"], surf)
         if cfg.dist_weight > 0 and it >= sch.dist_from:
             loss = loss + cfg.dist_weight * distortion_loss(o["distortion"])
+        if self.normals is not None:
+            loss = loss + cfg.prior_weight * self._prior(i, o)
         return loss
+
+    def _prior(self, i: int, o: dict) -> torch.Tensor:
+        """``L_prior`` of view ``i`` (module docstring) for the render ``o``."""
+        prior, alpha = self.normals[i], o["alpha"]
+        n_depth = depth_to_normal(o["depth"] / alpha.clamp_min(1e-6), self.Ks[i].to(self.dev), self.Vs[i].to(self.dev))
+        has = ((alpha.detach() > 0.5) & (prior.norm(dim=-1) > 0.5)).to(alpha.dtype)
+        err = one_minus_cos(prior, o["normal"]) + one_minus_cos(prior, n_depth.to(alpha.dtype))
+        return (err * has).sum() / has.sum().clamp_min(1.0)
 
     def step(self, it: int, train_idx) -> None:
         """One iteration: render a view, back-propagate, gather densification statistics,

@@ -27,8 +27,10 @@ mesh-only block) works finer than the initial edge length alone allows (issues 1
 The field is initialised SDF-like (method.md leaves this open): ``phi_init="visual_hull"``
 labels each vertex inside/outside the masks' visual hull (:func:`holowarp.carve.inside_hull`)
 and sets phi to the signed graph distance to the label interface along mesh edges
-(negative inside), which is what the eikonal term expects; ``"inside"`` starts every vertex
-at ``-phi_inside`` (all tets opaque). :func:`init_model` builds the §4 model (one surfel per
+(negative inside), which is what the eikonal term expects; ``"depth_hull"`` (the default)
+also labels outside the vertices some views see in front of the stage-0 surfels' surface,
+so the start already holds the concavities the silhouettes miss (without stage-0 depth maps
+it is the visual hull); ``"inside"`` starts every vertex at ``-phi_inside`` (all tets opaque). :func:`init_model` builds the §4 model (one surfel per
 tet) with that field and colours sampled from the images.
 """
 
@@ -111,7 +113,8 @@ def _carve_views(views, config: TopologyConfig) -> np.ndarray:
 
 def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig, *, depth_maps=None) -> np.ndarray:
     """Initial vertex field (V,), see the module docstring. ``depth_maps`` (the stage-0
-    surfels' ``(depths, alphas)`` at ``_carve_views(views)``) is needed by ``"depth_hull"``."""
+    surfels' ``(depths, alphas)`` at ``_carve_views(views)``) is what ``"depth_hull"``
+    carves with; without them it gives the visual hull's field."""
     V = mesh.num_vertices
     if config.phi_init == "inside":
         return np.full(V, -config.phi_inside)
@@ -121,9 +124,7 @@ def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig, *, depth_map
     from scipy.sparse.csgraph import dijkstra
 
     inside = inside_hull(dataset, mesh.vertices, views, tolerance=config.hull)
-    if config.phi_init == "depth_hull":
-        if depth_maps is None:
-            raise ValueError("phi_init 'depth_hull' needs the stage-0 surfels' depth maps")
+    if config.phi_init == "depth_hull" and depth_maps is not None:
         E0 = mesh.edges()
         tol = config.depth_carve_tol * float(np.linalg.norm(mesh.vertices[E0[:, 0]] - mesh.vertices[E0[:, 1]], axis=1).mean())
         inside &= ~in_front_of_surface(dataset, mesh.vertices, _carve_views(views, config), *depth_maps, tol=tol,
@@ -351,7 +352,7 @@ def gaussian_step(
     if tensors.normals is not None and config.w_prior > 0:
         prior = tensors.normals[view]
         has = opaque & (prior.norm(dim=-1) > 0.5) & (n_depth.norm(dim=-1) > 0.5)
-        e = _one_minus_cos(prior, out["normal"]) + _one_minus_cos(prior, n_depth)
+        e = losses.one_minus_cos(prior, out["normal"]) + losses.one_minus_cos(prior, n_depth)
         l_prior = losses.ranked_loss(e, mask=has, top_fraction=frac, groups=groups)
         loss = loss + config.w_prior * l_prior
         terms["prior"] = l_prior
@@ -394,11 +395,6 @@ def refit_appearance(model: TetGaussians, dataset, config: TopologyConfig, steps
     tenth = max(1, steps // 10)
     rgb = torch.stack(rgb).cpu().numpy()
     return {"steps": int(steps), "rgb_before": float(rgb[:tenth].mean()), "rgb_after": float(rgb[-tenth:].mean())}
-
-
-def _one_minus_cos(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Per-pixel ``1 - cos(a, b)`` of two normal maps [H, W, 3] (need not be unit length)."""
-    return 1.0 - (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-12)
 
 
 def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None) -> dict:
