@@ -222,21 +222,24 @@ class _Trainer:
         loss = l1_dssim_loss(o["rgb"], self.targets[i], lambda_dssim=cfg.dssim_weight)
         if cfg.mask_weight > 0:
             loss = loss + cfg.mask_weight * mask_loss(o["alpha"], self.masks[i])
-        if cfg.normal_weight > 0 and it >= sch.normal_from:
+        consistency = cfg.normal_weight > 0 and it >= sch.normal_from
+        if consistency or self.normals is not None:
+            # One depth-normal map for both terms that read it.
             alpha = o["alpha"]
-            depth = o["depth"] / alpha.clamp_min(1e-6)
-            surf = depth_to_normal(depth, self.Ks[i].to(self.dev), self.Vs[i].to(self.dev)) * alpha.detach()[..., None]
-            loss = loss + cfg.normal_weight * normal_consistency_loss(o["normal"], surf)
+            n_depth = depth_to_normal(o["depth"] / alpha.clamp_min(1e-6), self.Ks[i].to(self.dev),
+                                      self.Vs[i].to(self.dev))
+        if consistency:
+            loss = loss + cfg.normal_weight * normal_consistency_loss(o["normal"], n_depth * alpha.detach()[..., None])
         if cfg.dist_weight > 0 and it >= sch.dist_from:
             loss = loss + cfg.dist_weight * distortion_loss(o["distortion"])
         if self.normals is not None:
-            loss = loss + cfg.prior_weight * self._prior(i, o)
+            loss = loss + cfg.prior_weight * self._prior(i, o, n_depth)
         return loss
 
-    def _prior(self, i: int, o: dict) -> torch.Tensor:
-        """``L_prior`` of view ``i`` (module docstring) for the render ``o``."""
+    def _prior(self, i: int, o: dict, n_depth: torch.Tensor) -> torch.Tensor:
+        """``L_prior`` of view ``i`` (module docstring) for the render ``o`` and its depth
+        normals ``n_depth`` (H, W, 3)."""
         prior, alpha = self.normals[i], o["alpha"]
-        n_depth = depth_to_normal(o["depth"] / alpha.clamp_min(1e-6), self.Ks[i].to(self.dev), self.Vs[i].to(self.dev))
         has = ((alpha.detach() > 0.5) & (prior.norm(dim=-1) > 0.5)).to(alpha.dtype)
         err = one_minus_cos(prior, o["normal"]) + one_minus_cos(prior, n_depth.to(alpha.dtype))
         return (err * has).sum() / has.sum().clamp_min(1.0)
