@@ -467,6 +467,12 @@ class TopologyConfig:
             vertex outside the masks' (tolerant) visual hull, the tets that straddle a
             see-through gap narrower than they are, so that the mask loss and the next prune
             can open it.
+        coarse_fraction, coarse_scale: the first ``coarse_fraction`` of the topology phase
+            renders and compares the training views at ``coarse_scale`` times the working
+            resolution (area-filtered images, masks and normal maps,
+            :meth:`holowarp.data.Dataset.resized`); the rest of the run works at full
+            resolution. A coarse-to-fine schedule (issue 12): the field settles the object's
+            coarse shape on the cheaper images first. 0: off.
         continuous_opacity: False runs the ablation "w/o continuous opacity": one free
             opacity per tet instead of the vertex field phi.
         min_component: which face-connected components a prune keeps when it splits the
@@ -515,6 +521,8 @@ class TopologyConfig:
     refine_factor: float = 0.6
     refine_at_prune: int = 0
     refine_where: str = "band"
+    coarse_fraction: float = 0.0
+    coarse_scale: float = 0.5
     continuous_opacity: bool = True
     min_component: float | None = None
 
@@ -533,6 +541,10 @@ class TopologyConfig:
                              f"{self.pit_solid_fraction!r}")
         if not (isinstance(self.pit_rounds, int) and self.pit_rounds >= 0):
             raise ValueError(f"TopologyConfig.pit_rounds must be an integer >= 0, got {self.pit_rounds!r}")
+        if not (isinstance(self.coarse_fraction, (int, float)) and 0.0 <= self.coarse_fraction <= 1.0):
+            raise ValueError(f"TopologyConfig.coarse_fraction must be in [0, 1] (0: off), got {self.coarse_fraction!r}")
+        if not (isinstance(self.coarse_scale, (int, float)) and 0.0 < self.coarse_scale <= 1.0):
+            raise ValueError(f"TopologyConfig.coarse_scale must be in (0, 1], got {self.coarse_scale!r}")
         if self.split_guard is not None and not (isinstance(self.split_guard, (int, float))
                                                  and 0.0 <= self.split_guard <= 1.0):
             raise ValueError(f"TopologyConfig.split_guard must be None or a fraction in [0, 1], got {self.split_guard!r}")

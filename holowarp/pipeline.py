@@ -160,6 +160,7 @@ class _Run:
         self._rebuild_optimizers(self.ckpt.optimizers if self.ckpt is not None else None,
                                  learn_scales=self.state.first_prune_done)
         self.tensors = ViewTensors(self.ds, self.device, pieces=self.pieces)
+        self.coarse = None
         for ev in self.cfg.schedule.events(self.state.main_iter):
             if isinstance(ev, GaussianStep):
                 self.on_step(ev)
@@ -213,9 +214,10 @@ class _Run:
     def on_step(self, ev: GaussianStep):
         sch, train, topo = self.cfg.schedule, self.ds.train_idx, ev.phase == "topology"
         view = int(train[np.random.default_rng([self.cfg.seed, 0, ev.iteration]).integers(len(train))])
+        ds, tensors = self._views_at(ev.iteration) if topo else (self.ds, self.tensors)
         with self.state.timed(ev.phase, 1):
-            terms = gaussian_step(self.model, self.ds, view, self.cfg.topology, self.opts, topology_phase=topo,
-                                  edges=self.edges, tensors=self.tensors)
+            terms = gaussian_step(self.model, ds, view, self.cfg.topology, self.opts, topology_phase=topo,
+                                  edges=self.edges, tensors=tensors)
         last = (self.losses.add(ev.phase, {"iter": ev.iteration}, terms) or [(None, None)])[-1][1]
         total, start = (sch.topology_until, 0) if topo else (sch.main_iters - sch.topology_until, sch.topology_until)
         self.bars.advance(ev.phase, total, ev.iteration - start, **({} if last is None else dict(
@@ -223,6 +225,18 @@ class _Run:
         self.state.main_iter = ev.iteration + 1
         if self.state.main_iter % self.cfg.checkpoint_every == 0:
             self.save()
+
+    def _views_at(self, iteration: int):
+        """The dataset and view tensors topology step ``iteration`` renders at: the coarse copy
+        in the first ``coarse_fraction`` of the phase (:class:`TopologyConfig`), else the full."""
+        t = self.cfg.topology
+        if iteration >= round(t.coarse_fraction * self.cfg.schedule.topology_until):
+            self.coarse = None
+            return self.ds, self.tensors
+        if self.coarse is None:
+            ds = self.ds.resized(max(1, round(max(self.ds.height, self.ds.width) * t.coarse_scale)))
+            self.coarse = (ds, ViewTensors(ds, self.device, pieces=self.pieces))
+        return self.coarse
 
     def finish(self) -> dict:
         """No checkpoint here: --resume of a finished run redoes cleanup and export alike."""

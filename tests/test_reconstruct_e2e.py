@@ -129,6 +129,40 @@ def test_loss_history_streams_one_line_per_step_and_stays_out_of_the_checkpoint(
     assert "history" not in ck["state"] and ck["state"]["history_lines"] == len(lines)
 
 
+def test_coarse_to_fine_renders_the_first_part_of_the_topology_phase_coarser(torus_dataset, tmp_path, monkeypatch):
+    cfg = tiny_config()
+    cfg = replace(cfg, schedule=replace(cfg.schedule, stage0_iters=40),
+                  topology=replace(cfg.topology, coarse_fraction=0.4, coarse_scale=0.5))
+    real_step, seen = pipeline.gaussian_step, []
+
+    def step(model, dataset, view, config, opts, *, topology_phase, edges, tensors):
+        if not topology_phase:  # the topology phase is over: enough seen
+            raise KeyboardInterrupt
+        seen.append((dataset.width, dataset.height, tuple(tensors.images.shape[1:3]), float(dataset.K[view][0, 0])))
+        return real_step(model, dataset, view, config, opts, topology_phase=topology_phase, edges=edges,
+                         tensors=tensors)
+
+    monkeypatch.setattr(pipeline, "gaussian_step", step)
+    with pytest.raises(KeyboardInterrupt):
+        reconstruct(torus_dataset, tmp_path / "run", config=cfg, progress=False)
+    n = cfg.schedule.topology_until
+    coarse = round(0.4 * n)
+    assert len(seen) == n and 0 < coarse < n
+    assert all(w == h == RES // 2 and shape == (RES // 2, RES // 2) for w, h, shape, _ in seen[:coarse])
+    assert all(w == h == RES and shape == (RES, RES) for w, h, shape, _ in seen[coarse:])
+    # The cameras are rescaled with the images: the focal length in pixels halves.
+    assert seen[0][3] == pytest.approx(seen[-1][3] / 2, rel=1e-6)
+
+
+def test_coarse_to_fine_settings_are_checked():
+    from holowarp.config import TopologyConfig
+
+    with pytest.raises(ValueError, match="coarse_fraction"):
+        TopologyConfig(coarse_fraction=1.5)
+    with pytest.raises(ValueError, match="coarse_scale"):
+        TopologyConfig(coarse_scale=0.0)
+
+
 def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkeypatch):
     cfg = tiny_config()
     cfg = replace(cfg, schedule=replace(cfg.schedule, stage0_iters=40), checkpoint_every=25)
