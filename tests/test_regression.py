@@ -113,6 +113,9 @@ def test_a_fixed_start_gives_the_recorded_mesh(torus_data, tmp_path, one_torch_t
     # As does its L_HC weight floor in the mesh blocks (GeometryConfig.hc_floor), covered by
     # tests/test_reconstruct_stages.py.
     cfg = replace(cfg, geometry=replace(cfg.geometry, hc_floor=0.0))
+    # And its normal-map prior in the mesh blocks (GeometryConfig.w_prior), covered by
+    # tests/test_reconstruct_stages.py.
+    cfg = replace(cfg, geometry=replace(cfg.geometry, w_prior=0.0))
     # And the prune's pit rule (TopologyConfig.pit_solid_fraction), covered by
     # tests/test_reconstruct_stages.py.
     cfg = replace(cfg, topology=replace(cfg.topology, pit_solid_fraction=1.0))
