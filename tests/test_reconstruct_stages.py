@@ -80,7 +80,7 @@ def test_fast_preset_scales_every_count_by_one_factor_and_keeps_the_order():
     assert replace(fast.geometry, hc_floor=0.0, w_prior=0.0, lr_start=paper.geometry.lr_start,
                    lr_end=paper.geometry.lr_end) == paper.geometry
     assert paper.geometry.hc_floor == 0.0 and fast.geometry.hc_floor == 1.0
-    assert paper.geometry.w_prior == 0.0 and fast.geometry.w_prior == 1.0
+    assert paper.geometry.w_prior == 0.0 and fast.geometry.w_prior == 2.0
     with pytest.raises(ValueError, match="preset"):
         preset("slow")
 
