@@ -27,7 +27,7 @@ __all__ = [
     "depth_to_normal",
     "normal_consistency_loss",
     "distortion_loss",
-    "one_minus_cos",
+    "prior_error",
     "ranked_loss",
     "ranked_normal_loss",
 ]
@@ -119,9 +119,19 @@ def normal_consistency_loss(
     return err.mean()
 
 
-def one_minus_cos(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Per-pixel ``1 - cos(a, b)`` of two normal maps [H, W, 3] (need not be unit length)."""
-    return 1.0 - (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-12)
+def prior_error(prior: torch.Tensor, *normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The normal-map prior's per-pixel error: ``sum_k 1 - cos(prior, normals[k])`` (H, W), and
+    where the prior holds a normal (H, W) bool (length > 0.5; the maps are zero elsewhere).
+
+    Every map is [H, W, 3] and need not be unit length. The prior's lengths are computed once
+    for all the maps compared with it (stage 0, the Gaussian phases and the mesh blocks each
+    compare one or two maps with it on every step)."""
+    length = prior.norm(dim=-1)
+    err = None
+    for n in normals:
+        e = 1.0 - (prior * n).sum(-1) / (length * n.norm(dim=-1)).clamp_min(1e-12)
+        err = e if err is None else err + e
+    return err, length > 0.5
 
 
 def distortion_loss(distortion: torch.Tensor, *, weight: torch.Tensor | None = None) -> torch.Tensor:

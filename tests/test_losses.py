@@ -17,6 +17,7 @@ from holowarp.losses import (
     mask_loss,
     nearest_box,
     normal_consistency_loss,
+    prior_error,
     ranked_loss,
     ranked_normal_loss,
 )
@@ -171,3 +172,28 @@ def test_ranked_normal_loss_is_scale_invariant_and_skips_empty_pixels():
     a0[0] = 0.0  # uncovered row: skipped
     expected = (1 - cos[1:]).mean()
     assert float(ranked_normal_loss(a0, b, top_fraction=1.0)) == pytest.approx(float(expected))
+
+
+def test_prior_error_sums_one_minus_cos_per_map_and_marks_where_the_prior_holds_a_normal(rng):
+    prior = rng.normal(size=(12, 9, 3))
+    prior[rng.random((12, 9)) < 0.3] = 0.0  # no normal there
+    a, b = rng.normal(size=(12, 9, 3)), rng.normal(size=(12, 9, 3))
+
+    def cos(u, v):  # float64 reference
+        return (u * v).sum(-1) / np.maximum(np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1), 1e-12)
+
+    at = torch.tensor(a, dtype=torch.float32, requires_grad=True)
+    err, has = prior_error(torch.tensor(prior, dtype=torch.float32), at, torch.tensor(b, dtype=torch.float32))
+    np.testing.assert_allclose(err.detach().numpy(), (1 - cos(prior, a)) + (1 - cos(prior, b)), atol=1e-5)
+    np.testing.assert_array_equal(has.numpy(), np.linalg.norm(prior, axis=-1) > 0.5)
+    # The gradient against a central difference in float64, on one pixel with a prior.
+    i, j = np.argwhere(np.linalg.norm(prior, axis=-1) > 0.5)[0]
+    (g,) = torch.autograd.grad(err[i, j], at)
+    h, num = 1e-6, np.zeros(3)
+    for k in range(3):
+        up, dn = a.copy(), a.copy()
+        up[i, j, k] += h
+        dn[i, j, k] -= h
+        num[k] = -(cos(prior, up)[i, j] - cos(prior, dn)[i, j]) / (2 * h)
+    np.testing.assert_allclose(g[i, j].numpy(), num, rtol=1e-3, atol=1e-5)
+    assert torch.count_nonzero(g).item() == 3  # only that pixel's normal moves

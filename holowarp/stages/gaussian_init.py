@@ -50,7 +50,7 @@ from holowarp.losses import (
     l1_dssim_loss,
     mask_loss,
     normal_consistency_loss,
-    one_minus_cos,
+    prior_error,
 )
 from holowarp.metrics.image import psnr, ssim
 from holowarp.progress import bar as progress_bar
@@ -240,8 +240,8 @@ class _Trainer:
         """``L_prior`` of view ``i`` (module docstring) for the render ``o`` and its depth
         normals ``n_depth`` (H, W, 3)."""
         prior, alpha = self.normals[i], o["alpha"]
-        has = ((alpha.detach() > 0.5) & (prior.norm(dim=-1) > 0.5)).to(alpha.dtype)
-        err = one_minus_cos(prior, o["normal"]) + one_minus_cos(prior, n_depth.to(alpha.dtype))
+        err, has = prior_error(prior, o["normal"], n_depth.to(alpha.dtype))
+        has = ((alpha.detach() > 0.5) & has).to(alpha.dtype)
         return (err * has).sum() / has.sum().clamp_min(1.0)
 
     def step(self, it: int, train_idx) -> None:

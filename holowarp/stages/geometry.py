@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from holowarp.config import GeometryConfig
+from holowarp.losses import prior_error
 from holowarp.progress import LossBuffer
 from holowarp.tetgs import TetGaussians
 
@@ -175,10 +176,9 @@ class GeometryBlock:
         if self.normals is None or self.cfg.w_prior <= 0:
             return None
         prior = self.normals[view]
-        sel = ((out["alpha"] > 0.5) & (prior.norm(dim=-1) > 0.5)).to(prior.dtype)
-        n = out["normal"]
-        cos = (n * prior).sum(-1) / (n.norm(dim=-1) * prior.norm(dim=-1)).clamp_min(1e-12)
-        return ((1.0 - cos) * sel).sum() / sel.sum().clamp_min(1.0)
+        err, has = prior_error(prior, out["normal"])
+        sel = ((out["alpha"] > 0.5) & has).to(prior.dtype)
+        return (err * sel).sum() / sel.sum().clamp_min(1.0)
 
     def view_of(self, t: int, seed: int) -> int:
         """The training view of global mesh iteration ``t``: drawn from ``default_rng([seed, 1, t])``."""

@@ -351,8 +351,8 @@ def gaussian_step(
     terms = {"rgb": l_rgb, "mask": l_mask, "normal": l_normal}
     if tensors.normals is not None and config.w_prior > 0:
         prior = tensors.normals[view]
-        has = opaque & (prior.norm(dim=-1) > 0.5) & (n_depth.norm(dim=-1) > 0.5)
-        e = losses.one_minus_cos(prior, out["normal"]) + losses.one_minus_cos(prior, n_depth)
+        e, has = losses.prior_error(prior, out["normal"], n_depth)
+        has = opaque & has & (n_depth.norm(dim=-1) > 0.5)
         l_prior = losses.ranked_loss(e, mask=has, top_fraction=frac, groups=groups)
         loss = loss + config.w_prior * l_prior
         terms["prior"] = l_prior
