@@ -46,6 +46,8 @@ def build_parser():
                    help="without a test split in the dataset, hold out every N-th view for the test metrics (default 10)")
     p.add_argument("--no-improve", action="store_true",
                    help="skip the element improvement after cleanup (method.md §7b; the paper's pipeline ends at cleanup)")
+    p.add_argument("--no-polish", action="store_true",
+                   help="skip the silhouette polish of the final mesh (holowarp.stages.polish)")
     p.add_argument("--scene-level", action="store_true",
                    help="several objects in one capture (method.md §11): keep every component above --min-component, "
                         "split the result into objects and write DIR/objects/NAME/tetmesh.vtu, a multi-body "
@@ -110,6 +112,8 @@ def config_from_args(args):
         cfg = replace(cfg, test_every=args.test_every)
     if args.no_improve:
         cfg = replace(cfg, improve=replace(cfg.improve, enabled=False))
+    if args.no_polish:
+        cfg = replace(cfg, polish=replace(cfg.polish, enabled=False))
     if not args.scene_level:
         for flag, v in (("--min-component", args.min_component), ("--objects", args.objects),
                         ("--object-size", args.object_size)):

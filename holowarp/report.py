@@ -14,7 +14,8 @@ mesh against the test views' masks and the surfels' normals, :mod:`holowarp.metr
 with ``mesh_see_through_covered``, the share of the masks' see-through pixels the mesh
 closes, and ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews``, ``config``,
 ``improve`` (the element improvement's section, :func:`holowarp.stages.improve.improve`;
-``null`` when ``config.improve.enabled`` is off), ``metrics`` (method.md §9) when the
+``null`` when ``config.improve.enabled`` is off), ``polish`` (the silhouette polish's section,
+:func:`holowarp.stages.polish.polish_silhouettes`; ``null`` when off), ``metrics`` (method.md §9) when the
 dataset has a ground-truth mesh, and ``scene`` (method.md §11, :func:`scene_objects`) when
 the run is scene level. The mesh counts and qualities are those of the final mesh
 (after improvement).
@@ -54,7 +55,7 @@ def image_metrics(renders, gts) -> tuple[float, float, list[float]]:
 
 
 def build_report(*, config, device, data_dir, dataset, state, clean, cleanup_info, psnr, ssim, outputs, previews,
-                 metrics=None, improve_info=None) -> dict:
+                 metrics=None, improve_info=None, polish_info=None) -> dict:
     """The report of a finished run (``seconds_total`` and ``peak_rss_mb`` are filled in by
     the caller once everything, writing included, is done)."""
     man = clean.manifold()
@@ -100,6 +101,7 @@ def build_report(*, config, device, data_dir, dataset, state, clean, cleanup_inf
         "previews": previews,
         "config": config.to_dict(),
         "improve": improve_info,
+        "polish": polish_info,
     }
     if metrics is not None:
         report["metrics"] = metrics
@@ -127,6 +129,7 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
     model.apply_cleanup(kept, clean)
     state.add_time("cleanup", time.perf_counter() - t0, 0)
     clean, improve_info = _improve(model, clean, dataset, config, device, state)
+    clean, polish_info = _polish(model, clean, dataset, config, device, state)
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -154,7 +157,8 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
         state.add_time("evaluate", time.perf_counter() - t0, 0)
     report = build_report(config=config, device=device, data_dir=data_dir, dataset=dataset, state=state, clean=clean,
                           cleanup_info=cinfo, psnr=views["psnr"], ssim=views["ssim"], outputs=outputs,
-                          previews=views["previews"], metrics=metrics, improve_info=improve_info)
+                          previews=views["previews"], metrics=metrics, improve_info=improve_info,
+                          polish_info=polish_info)
     report.update(views["checks"])
     if scene is not None:
         report["scene"] = scene
@@ -252,6 +256,23 @@ def _return_freed_memory() -> None:
         ctypes.CDLL("libc.so.6").malloc_trim(0)
     except (OSError, AttributeError):
         pass
+
+
+def _polish(model, clean, dataset, config, device, state):
+    """The silhouette polish (:mod:`holowarp.stages.polish`) of the final mesh, the surfels
+    following their tets; returns (mesh, report section or None when disabled)."""
+    if not config.polish.enabled:
+        return clean, None
+    import torch
+
+    from holowarp.stages.polish import polish_silhouettes
+
+    t0 = time.perf_counter()
+    V, info = polish_silhouettes(clean, dataset, config.polish, seed=config.seed, device=str(device))
+    with torch.no_grad():
+        model.vertices.data.copy_(torch.as_tensor(V, dtype=model.vertices.dtype, device=model.vertices.device))
+    state.add_time("polish", time.perf_counter() - t0, 0)
+    return clean.with_vertices(V), info
 
 
 def _improve(model, clean, dataset, config, device, state):

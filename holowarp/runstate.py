@@ -185,10 +185,10 @@ def settings_diff(current: dict, saved: dict) -> list[str]:
 
 
 #: Settings sections that only the finish reads (cleanup, the element improvement and its
-#: surfel refit). A resumed run always redoes the finish from the checkpointed model, so these
+#: surfel refit, the silhouette polish). A resumed run always redoes the finish from the checkpointed model, so these
 #: may differ on ``--resume``: that is how a finished run is finished again with other
 #: cleanup or improvement settings (``--resume --no-improve``, say).
-FINISH_ONLY = ("cleanup", "improve")
+FINISH_ONLY = ("cleanup", "improve", "polish")
 
 
 def check_resume(out_dir, ckpt: Checkpoint | None, config_dict: dict, dataset_path, *, resume: bool) -> None:

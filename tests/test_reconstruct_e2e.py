@@ -113,6 +113,10 @@ def test_report_accounts_for_every_scheduled_event(tiny_run):
     # targets are measured at the fast preset's resolution (issue 13's table): at this 40 px
     # run's coarse tets the surface budget runs out before every cap is mended.
     assert imp["after"]["eta_min"] >= 0.01 and imp["eta_histogram_after"]["below_0.01"] == 0
+    # The silhouette polish runs last and brings the boundary closer to the masks.
+    pol = report["polish"]
+    assert pol["steps"] == tiny_config().polish.steps and st["polish"]["seconds"] > 0
+    assert pol["mask_l1_after"] < pol["mask_l1_before"]
 
 
 def test_loss_history_streams_one_line_per_step_and_stays_out_of_the_checkpoint(tiny_run):
@@ -240,9 +244,10 @@ def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkey
 
     # Settings that only the finish reads may change: the run is finished again from its
     # checkpoint, here without the element improvement, so its mesh is cleanup's.
-    rc = reconstruct(torus_dataset, b, config=replace(cfg, improve=replace(cfg.improve, enabled=False)),
+    rc = reconstruct(torus_dataset, b, config=replace(cfg, improve=replace(cfg.improve, enabled=False),
+                                                      polish=replace(cfg.polish, enabled=False)),
                      resume=True, progress=False)
-    assert rc["improve"] is None and rc["tets_final"] == rb["cleanup"]["tets_after"]
+    assert rc["improve"] is None and rc["polish"] is None and rc["tets_final"] == rb["cleanup"]["tets_after"]
     assert rc["prunes"] == rb["prunes"] and rc["genus"] == rb["genus"]
 
 

@@ -119,6 +119,8 @@ def test_a_fixed_start_gives_the_recorded_mesh(torus_data, tmp_path, one_torch_t
     # And the prune's pit rule (TopologyConfig.pit_solid_fraction), covered by
     # tests/test_reconstruct_stages.py.
     cfg = replace(cfg, topology=replace(cfg.topology, pit_solid_fraction=1.0))
+    # And the silhouette polish of the final mesh (PolishConfig), covered by tests/test_polish.py.
+    cfg = replace(cfg, polish=replace(cfg.polish, enabled=False))
     model = TetGaussians(mesh, colors=np.full((mesh.num_tets, 3), 0.5), phi=phi, config=cfg.topology, seed=cfg.seed)
     state = RunState(phase=Phase.MAIN, tets_initial=mesh.num_tets, vertices_initial=mesh.num_vertices)
     out = tmp_path / "run"
