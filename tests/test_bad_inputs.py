@@ -306,6 +306,8 @@ CASES = [
          ["--work", "{O}/q", "--objects", "bowl", "--set", "nowhere.x=1"], "--set nowhere.x=1"),
     Case("raw traceback", "bench quality --set bad value", "bench.quality",
          ["--work", "{O}/q", "--objects", "bowl", "--set", "geometry.hc_floor=-1"], "hc_floor"),
+    Case("silent wrong result", "bench quality --set a bool to a word", "bench.quality",
+         ["--work", "{O}/q", "--objects", "bowl", "--set", "polish.enabled=no"], "expected true or false"),
     Case("silent wrong result", "improve a mixed-orientation mesh", "improve", ["{T}/mixed.npz", "{O}/out.vtu"],
          "mixed orientation", setup=lambda w, T, O: _mixed(w, T)),
 ]

@@ -72,3 +72,13 @@ def test_polish_settings_are_checked(bad):
 
 def test_both_presets_polish():
     assert preset("fast").polish.enabled and preset("paper").polish.enabled
+
+
+def test_the_quality_bench_switches_the_polish_off_as_written():
+    from holowarp.bench.quality import apply_overrides
+
+    for word in ("False", "false"):
+        assert apply_overrides(preset("fast"), [f"polish.enabled={word}"]).polish.enabled is False
+    assert apply_overrides(preset("fast"), ["polish.steps=20"]).polish.steps == 20
+    with pytest.raises(ValueError, match="expected a number"):
+        apply_overrides(preset("fast"), ["polish.steps=ten"])

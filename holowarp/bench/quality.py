@@ -74,7 +74,8 @@ def _mesh_file(name: str, work: Path) -> tuple[Path, str]:
 
 def apply_overrides(cfg, overrides):
     """``cfg`` with dotted ``section.field=value`` overrides applied (values parsed as JSON
-    when they parse, else kept as strings)."""
+    when they parse, else kept as strings; a value must fit the setting's type, so
+    ``enabled=False`` is a bool and ``steps=ten`` an error)."""
     from dataclasses import fields, is_dataclass, replace
 
     for item in overrides:
@@ -87,13 +88,27 @@ def apply_overrides(cfg, overrides):
         if len(parts) > 2 or not all(parts) or not hasattr(cfg, parts[0]):
             raise ValueError(f"--set {item}: expected SECTION.SETTING=VALUE or SETTING=VALUE of the fast preset")
         if len(parts) == 1:
-            cfg = replace(cfg, **{parts[0]: value})
+            cfg = replace(cfg, **{parts[0]: _typed(item, getattr(cfg, parts[0]), value)})
         else:
             sec = getattr(cfg, parts[0])
             if not is_dataclass(sec) or parts[1] not in {f.name for f in fields(sec)}:
                 raise ValueError(f"--set {item}: {parts[0]} has no setting {parts[1]!r}")
+            value = _typed(item, getattr(sec, parts[1]), value)
             cfg = replace(cfg, **{parts[0]: replace(sec, **{parts[1]: tuple(value) if isinstance(value, list) else value})})
     return cfg
+
+
+def _typed(item: str, current, value):
+    """``value`` checked against the type of the setting's ``current`` value: a bool setting
+    takes true/false in any case (a string would be truthy), a number a number."""
+    if isinstance(current, bool):
+        if isinstance(value, str) and value.lower() in ("true", "false"):
+            return value.lower() == "true"
+        if not isinstance(value, bool):
+            raise ValueError(f"--set {item}: expected true or false")
+    elif isinstance(current, (int, float)) and (isinstance(value, (str, bool)) or value is None):
+        raise ValueError(f"--set {item}: expected a number")
+    return value
 
 
 def run_object(name: str, work: str, *, res: int, views: int, grid: int, scale_iters, tag: str, device: str,

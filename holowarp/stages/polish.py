@@ -94,7 +94,8 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
     e = torch.tensor(edges, dtype=torch.int64, device=dev)
     xb0 = x[ids_t].clone()
     h = float((xb0[e[:, 0]] - xb0[e[:, 1]]).norm(dim=1).mean())
-    masks = {int(v): torch.as_tensor(np.asarray(dataset.masks[v]), dtype=torch.float32, device=dev) for v in train}
+    # Converted per use: zero-copy on the CPU, and no second copy of every mask on a GPU.
+    masks = _Masks(dataset, dev)
     check = train[np.linspace(0, len(train) - 1, min(config.check_views, len(train))).round().astype(int)]
     before = _mask_l1(xb0, faces, dataset, check, masks)
 
@@ -135,6 +136,16 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
     out = np.array(mesh.vertices, dtype=np.float64)
     out[ids] += d.detach().cpu().double().numpy()
     return out, info
+
+
+class _Masks:
+    """``masks[v]``: view ``v``'s mask as a float32 (H, W) tensor on ``device``."""
+
+    def __init__(self, dataset, device):
+        self.dataset, self.device = dataset, device
+
+    def __getitem__(self, v) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(self.dataset.masks[int(v)]), dtype=torch.float32, device=self.device)
 
 
 def _view_loss(xb, faces, dataset, v: int, mask) -> torch.Tensor:
