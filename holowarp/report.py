@@ -15,7 +15,7 @@ with ``mesh_see_through_covered``, the share of the masks' see-through pixels th
 closes, and ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews``, ``config``,
 ``improve`` (the element improvement's section, :func:`holowarp.stages.improve.improve`;
 ``null`` when ``config.improve.enabled`` is off), ``polish`` (the silhouette polish's section,
-:func:`holowarp.stages.polish.polish_silhouettes`; ``null`` when off), ``metrics`` (method.md §9) when the
+:func:`holowarp.stages.polish.polish_silhouettes` with ``pits_lifted``; ``null`` when off), ``metrics`` (method.md §9) when the
 dataset has a ground-truth mesh, and ``scene`` (method.md §11, :func:`scene_objects`) when
 the run is scene level. The mesh counts and qualities are those of the final mesh
 (after improvement).
@@ -128,8 +128,9 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
     clean, kept, cinfo = cleanup(model.mesh(), config.cleanup)
     model.apply_cleanup(kept, clean)
     state.add_time("cleanup", time.perf_counter() - t0, 0)
-    clean, improve_info = _improve(model, clean, dataset, config, device, state)
+    # The polish goes before §7b, which mends the tets it flattens or skews.
     clean, polish_info = _polish(model, clean, dataset, config, device, state)
+    clean, improve_info = _improve(model, clean, dataset, config, device, state)
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -259,20 +260,28 @@ def _return_freed_memory() -> None:
 
 
 def _polish(model, clean, dataset, config, device, state):
-    """The silhouette polish (:mod:`holowarp.stages.polish`) of the final mesh, the surfels
-    following their tets; returns (mesh, report section or None when disabled)."""
+    """The silhouette polish (:mod:`holowarp.stages.polish`) of the cleaned mesh: pits
+    lifted, then the boundary fitted to the masks, the surfels following their tets; returns
+    (mesh, report section or None when disabled)."""
     if not config.polish.enabled:
         return clean, None
-    import torch
-
-    from holowarp.stages.polish import polish_silhouettes
+    from holowarp.stages.polish import lift_pits, polish_silhouettes
 
     t0 = time.perf_counter()
-    V, info = polish_silhouettes(clean, dataset, config.polish, seed=config.seed, device=str(device))
+    V, pits = lift_pits(clean, config.polish)
+    V, info = polish_silhouettes(clean.with_vertices(V), dataset, config.polish, seed=config.seed, device=str(device))
+    info["pits_lifted"] = pits
+    state.add_time("polish", time.perf_counter() - t0, 0)
+    return _move_vertices(model, clean, V), info
+
+
+def _move_vertices(model, mesh, V):
+    """``mesh`` with vertices ``V`` (V, 3), the model's vertices (and so its surfels) following."""
+    import torch
+
     with torch.no_grad():
         model.vertices.data.copy_(torch.as_tensor(V, dtype=model.vertices.dtype, device=model.vertices.device))
-    state.add_time("polish", time.perf_counter() - t0, 0)
-    return clean.with_vertices(V), info
+    return mesh.with_vertices(V)
 
 
 def _improve(model, clean, dataset, config, device, state):

@@ -39,7 +39,7 @@ LAYERS = [
 ]
 
 #: The stages in method order (method.md §3-§7b, then §11); each may import only earlier ones.
-STAGE_ORDER = ["gaussian_init", "tet_init", "topology", "geometry", "cleanup", "improve", "polish", "export", "objects"]
+STAGE_ORDER = ["gaussian_init", "tet_init", "topology", "geometry", "cleanup", "polish", "improve", "export", "objects"]
 
 #: The only packages whose code may launch Warp kernels.
 KERNEL_DRIVERS = ("holowarp.ops", "holowarp.sim")

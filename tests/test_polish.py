@@ -41,19 +41,27 @@ def _boundary_radius_error(V, mesh) -> float:
 def test_polish_pulls_a_grown_boundary_onto_the_silhouettes(grown_sphere):
     ds, mesh = grown_sphere
     V0 = np.asarray(mesh.vertices)
-    V, info = polish_silhouettes(mesh, ds, PolishConfig(steps=40, views=4, lr=0.03), seed=3)
+    cfg = PolishConfig(steps=40, views=4, lr=0.03, min_volume_fraction=0.5)
+    V, info = polish_silhouettes(mesh, ds, cfg, seed=3)
     before, after = _boundary_radius_error(V0, mesh), _boundary_radius_error(V, mesh)
     assert before > 0.015 and after < 0.4 * before, (before, after)
     assert info["mask_l1_after"] < 0.7 * info["mask_l1_before"]
-    # Only boundary vertices move; every tet keeps half its volume (the floor), so none inverts.
+    # Only boundary vertices move; every tet keeps half its volume (the floor here), so none inverts.
     inner = np.setdiff1d(np.arange(len(V0)), np.unique(mesh.boundary_faces()))
     assert np.array_equal(V[inner], V0[inner])
     vol0, vol = mesh.signed_volumes(), mesh.with_vertices(V).signed_volumes()
     assert np.all(vol >= 0.5 * vol0 * (1 - 1e-5))
     assert info["steps"] == 40 and info["views_per_step"] == 4 and 0 < info["moved_mean"] <= info["moved_max"]
     # The views each step draws are a function of (seed, step).
-    V2, _ = polish_silhouettes(mesh, ds, PolishConfig(steps=40, views=4, lr=0.03), seed=3)
+    V2, _ = polish_silhouettes(mesh, ds, cfg, seed=3)
     assert np.array_equal(V, V2)
+
+
+def test_the_default_floor_keeps_four_fifths_of_every_tet(grown_sphere):
+    ds, mesh = grown_sphere
+    V, info = polish_silhouettes(mesh, ds, PolishConfig(steps=15, views=4, lr=0.03), seed=1)
+    assert info["moved_max"] > 0 and info["mask_l1_after"] < info["mask_l1_before"]
+    assert np.all(mesh.with_vertices(V).signed_volumes() >= 0.8 * mesh.signed_volumes() * (1 - 1e-5))
 
 
 def test_polish_without_steps_leaves_the_mesh_alone(grown_sphere):
@@ -64,7 +72,8 @@ def test_polish_without_steps_leaves_the_mesh_alone(grown_sphere):
 
 
 @pytest.mark.parametrize("bad", [dict(steps=-1), dict(views=0), dict(steps=2.5), dict(lr=float("nan")),
-                                 dict(smooth=-1.0), dict(min_volume_fraction=1.0), dict(check_views=0)])
+                                 dict(smooth=-1.0), dict(min_volume_fraction=1.0), dict(check_views=0),
+                                 dict(pit_depth=-0.1), dict(pit_floor=1.0)])
 def test_polish_settings_are_checked(bad):
     with pytest.raises(ValueError, match="PolishConfig"):
         PolishConfig(**bad)
@@ -82,3 +91,32 @@ def test_the_quality_bench_switches_the_polish_off_as_written():
     assert apply_overrides(preset("fast"), ["polish.steps=20"]).polish.steps == 20
     with pytest.raises(ValueError, match="expected a number"):
         apply_overrides(preset("fast"), ["polish.steps=ten"])
+
+
+def _pit_mesh(z: float):
+    """A tetrahedron (a, b, c, p) whose top face is replaced by a fan around v = (0, 0, z): a
+    one-tet pit for z < 0, a bump for z > 0; 0.2 across, centred in the sphere scene's views."""
+    from holowarp.tetmesh import TetMesh
+
+    ang = 2 * np.pi * np.arange(3) / 3
+    V = np.array([[np.cos(t), np.sin(t), 0.0] for t in ang] + [[0.0, 0.0, -2.0], [0.0, 0.0, z]]) * 0.1
+    T = np.array([[4, 0, 1, 3], [4, 1, 2, 3], [4, 2, 0, 3]])
+    a, b, c, d = (V[T[:, k]] for k in range(4))
+    neg = np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a)) < 0
+    T[neg] = T[neg][:, [1, 0, 2, 3]]
+    return TetMesh(V, T)
+
+
+@pytest.mark.parametrize("z, flattened", [(-1.0, True), (-0.3, False), (0.3, False)])
+def test_a_one_tet_pit_is_put_back_on_its_rim(z, flattened):
+    from holowarp.stages.polish import lift_pits
+
+    mesh = _pit_mesh(z)
+    V, lifted = lift_pits(mesh, PolishConfig())
+    assert lifted == int(flattened)
+    if flattened:  # onto the plane of its three neighbours, straight up
+        np.testing.assert_allclose(V[4], [0.0, 0.0, 0.0], atol=1e-6)
+        assert np.all(mesh.with_vertices(V).signed_volumes() > mesh.signed_volumes())
+    else:
+        np.testing.assert_array_equal(V, mesh.vertices)
+    np.testing.assert_array_equal(V[:4], mesh.vertices[:4])

@@ -8,9 +8,9 @@ imports only earlier ones; ``tests/test_layers.py`` checks it).
   L_topo, pruning.
 - ``geometry``: §6, geometry optimisation — mesh-only blocks driven by L_geo.
 - ``cleanup``: §7, flip / drop / one component / manifold repair.
+- ``polish``: the silhouette polish — one-tet pits lifted, then the cleaned boundary fitted
+  to the masks, several views per step (issue 12; not in the paper).
 - ``improve``: §7b, element improvement — flips, smoothing, sliver removal.
-- ``polish``: the silhouette polish — the final boundary fitted to the masks, several views
-  per step (issue 12; not in the paper).
 - ``export``: §7, every output file.
 - ``objects``: §11, scene level — the final mesh split into objects, one tet mesh and one
   deformable body each.
