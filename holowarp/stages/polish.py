@@ -72,7 +72,7 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
     """Fit ``mesh``'s boundary vertices to ``dataset``'s training masks (module docstring).
 
     Args:
-        mesh: the final tet mesh (world units); it is not modified.
+        mesh: the cleaned tet mesh (world units); it is not modified.
         dataset: the run's :class:`holowarp.data.Dataset` (masks (N, H, W) in [0, 1]).
         config: :class:`holowarp.config.PolishConfig`.
         seed: the views each step draws are a function of (seed, step).
@@ -136,7 +136,7 @@ def lift_pits(mesh: TetMesh, config: PolishConfig) -> tuple[np.ndarray, int]:
     V = np.array(mesh.vertices, dtype=np.float64)
     h = float(np.linalg.norm(V[ids[edges[:, 0]]] - V[ids[edges[:, 1]]], axis=1).mean())
     tets = np.asarray(mesh.tets)
-    floor = config.pit_floor * np.clip(_volumes(V, tets), 0.0, None)
+    floor = config.pit_floor * np.clip(mesh.signed_volumes(), 0.0, None)
     x = torch.tensor(V)
     moved = _flatten_pits(x, ids, lfaces, config.pit_depth * h, tets, floor)
     V[moved] = x[moved].numpy()
@@ -177,7 +177,8 @@ def _flatten_pits(x: torch.Tensor, ids: np.ndarray, lfaces: np.ndarray, depth: f
         inc = np.flatnonzero((tets == vid).any(axis=1))
         Y = X.copy()
         Y[vid] -= s * n
-        v0, v1 = _volumes(X, tets[inc]), _volumes(Y, tets[inc])
+        # TetMesh freezes the arrays it is given: copies, so X stays writable.
+        v0, v1 = (TetMesh(P.copy(), tets[inc], validate=False).signed_volumes() for P in (X, Y))
         shrink = v1 < v0
         t = min(1.0, float(np.min((v0 - floor[inc])[shrink] / (v0 - v1)[shrink]))) if shrink.any() else 1.0
         if t > 0:
@@ -185,11 +186,6 @@ def _flatten_pits(x: torch.Tensor, ids: np.ndarray, lfaces: np.ndarray, depth: f
             x[vid] = torch.as_tensor(X[vid], dtype=x.dtype, device=x.device)
             moved.append(vid)
     return np.asarray(moved, dtype=np.int64)
-
-
-def _volumes(X: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    a, b, c, d = (X[tets[:, k]] for k in range(4))
-    return np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a)) / 6.0
 
 
 class _Fit:
