@@ -940,6 +940,14 @@ class PolishConfig:
         pit_floor: a lift stops where one of the vertex's tets would fall below this fraction
             of its volume (0.1; the improvement then mends them. At 0.5 bob's pit rose only
             two thirds of the way: Hausdorff 0.028 -> 0.022; at 0.1, 0.019).
+        after_steps, after_volume_fraction: a second, shorter fit after the element
+            improvement (40 steps, no tet below 0.9 of its improved volume; 0 steps: none).
+            §7b's boundary flips and cap deletions undo part of the fit; the second one wins
+            it back at a small cost in the worst angles. Finishing the same main-loop results
+            again (fast, 128²): lego's mesh_mask_iou 0.9695 -> 0.9709, star's F@0.005 0.885
+            -> 0.901 (worst dihedral 6.3° -> 5.6°), bob's 0.9883 -> 0.9888 (11.8° -> 11.1°,
+            normal consistency 0.99209 -> 0.99189). At a 0.8 floor the gains were a little
+            larger and the angles lower (bob 9.9°).
     """
 
     enabled: bool = True
@@ -951,17 +959,19 @@ class PolishConfig:
     check_views: int = 16
     pit_depth: float = 0.4
     pit_floor: float = 0.1
+    after_steps: int = 40
+    after_volume_fraction: float = 0.9
 
     def __post_init__(self):
-        for name in ("steps", "views", "check_views"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not (isinstance(v, int) and v >= (0 if name == "steps" else 1)):
-                raise ValueError(f"PolishConfig.{name} must be an integer >= {0 if name == 'steps' else 1}, got {v!r}")
+        for name in ("steps", "views", "check_views", "after_steps"):
+            v, lo = getattr(self, name), 0 if name.endswith("steps") else 1
+            if isinstance(v, bool) or not (isinstance(v, int) and v >= lo):
+                raise ValueError(f"PolishConfig.{name} must be an integer >= {lo}, got {v!r}")
         for name in ("lr", "smooth", "pit_depth"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"PolishConfig.{name} must be a finite number >= 0, got {v!r}")
-        for name in ("min_volume_fraction", "pit_floor"):
+        for name in ("min_volume_fraction", "pit_floor", "after_volume_fraction"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"PolishConfig.{name} must lie in [0, 1), got {getattr(self, name)!r}")
 

@@ -131,6 +131,7 @@ def finish_run(model, dataset, data_dir, out_dir, config, device, state, history
     # The polish goes before §7b, which mends the tets it flattens or skews.
     clean, polish_info = _polish(model, clean, dataset, config, device, state)
     clean, improve_info = _improve(model, clean, dataset, config, device, state)
+    clean = _touch_up(model, clean, dataset, config, device, state, polish_info, improved=improve_info is not None)
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -273,6 +274,25 @@ def _polish(model, clean, dataset, config, device, state):
     info["pits_lifted"] = pits
     state.add_time("polish", time.perf_counter() - t0, 0)
     return _move_vertices(model, clean, V), info
+
+
+def _touch_up(model, clean, dataset, config, device, state, polish_info, *, improved: bool):
+    """A short second fit of the polish after §7b (``PolishConfig.after_steps``, under the
+    tighter ``after_volume_fraction``), which wins back what the improvement's boundary
+    operations undid; its section goes to ``polish_info["after"]``."""
+    p = config.polish
+    if polish_info is None or not improved or p.after_steps == 0:
+        return clean
+    from dataclasses import replace
+
+    from holowarp.stages.polish import polish_silhouettes
+
+    t0 = time.perf_counter()
+    V, info = polish_silhouettes(clean, dataset, replace(p, steps=p.after_steps, min_volume_fraction=p.after_volume_fraction),
+                                 seed=config.seed + 1, device=str(device))
+    polish_info["after"] = info
+    state.add_time("polish", time.perf_counter() - t0, 0)
+    return _move_vertices(model, clean, V)
 
 
 def _move_vertices(model, mesh, V):

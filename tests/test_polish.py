@@ -73,7 +73,8 @@ def test_polish_without_steps_leaves_the_mesh_alone(grown_sphere):
 
 @pytest.mark.parametrize("bad", [dict(steps=-1), dict(views=0), dict(steps=2.5), dict(lr=float("nan")),
                                  dict(smooth=-1.0), dict(min_volume_fraction=1.0), dict(check_views=0),
-                                 dict(pit_depth=-0.1), dict(pit_floor=1.0)])
+                                 dict(pit_depth=-0.1), dict(pit_floor=1.0), dict(after_steps=-1),
+                                 dict(after_volume_fraction=1.0)])
 def test_polish_settings_are_checked(bad):
     with pytest.raises(ValueError, match="PolishConfig"):
         PolishConfig(**bad)

@@ -117,6 +117,7 @@ def test_report_accounts_for_every_scheduled_event(tiny_run):
     pol = report["polish"]
     assert pol["steps"] == tiny_config().polish.steps and st["polish"]["seconds"] > 0
     assert pol["mask_l1_after"] < pol["mask_l1_before"] and isinstance(pol["pits_lifted"], int)
+    assert pol["after"]["steps"] == tiny_config().polish.after_steps  # the short fit after §7b
 
 
 def test_loss_history_streams_one_line_per_step_and_stays_out_of_the_checkpoint(tiny_run):

@@ -21,6 +21,9 @@ Interior vertices do not move. After every step, vertices of tets that fell belo
 (:func:`holowarp.stages.geometry.revert_inverting_moves`), so no tet inverts and the element
 improvement (§7b), which runs next, finds the elements much as the main loop left them.
 
+A second, shorter fit follows the element improvement (``PolishConfig.after_steps``, under a
+tighter floor), since §7b's boundary flips and cap deletions undo part of the first.
+
 Before the fit, :func:`lift_pits` lifts the one-tet pits (a boundary vertex with three
 boundary neighbours, most of an edge below their plane) that the main loop leaves on some
 runs; no silhouette sees them, and the deepest set the Hausdorff distance (bob: 0.028).
