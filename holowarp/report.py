@@ -15,7 +15,8 @@ with ``mesh_see_through_covered``, the share of the masks' see-through pixels th
 closes, and ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews``, ``config``,
 ``improve`` (the element improvement's section, :func:`holowarp.stages.improve.improve`;
 ``null`` when ``config.improve.enabled`` is off), ``polish`` (the silhouette polish's section,
-:func:`holowarp.stages.polish.polish_silhouettes` with ``pits_lifted``; ``null`` when off), ``metrics`` (method.md §9) when the
+:func:`holowarp.stages.polish.polish_silhouettes` with ``pits_lifted`` and ``after``, the
+second fit's own section after §7b; ``null`` when off), ``metrics`` (method.md §9) when the
 dataset has a ground-truth mesh, and ``scene`` (method.md §11, :func:`scene_objects`) when
 the run is scene level. The mesh counts and qualities are those of the final mesh
 (after improvement).

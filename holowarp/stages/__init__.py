@@ -9,7 +9,8 @@ imports only earlier ones; ``tests/test_layers.py`` checks it).
 - ``geometry``: §6, geometry optimisation — mesh-only blocks driven by L_geo.
 - ``cleanup``: §7, flip / drop / one component / manifold repair.
 - ``polish``: the silhouette polish — one-tet pits lifted, then the cleaned boundary fitted
-  to the masks, several views per step (issue 12; not in the paper).
+  to the masks, several views per step, and fitted again briefly after ``improve`` (issue
+  12; not in the paper).
 - ``improve``: §7b, element improvement — flips, smoothing, sliver removal.
 - ``export``: §7, every output file.
 - ``objects``: §11, scene level — the final mesh split into objects, one tet mesh and one
