@@ -140,31 +140,28 @@ def lift_pits(mesh: TetMesh, config: PolishConfig) -> tuple[np.ndarray, int]:
     h = float(np.linalg.norm(V[ids[edges[:, 0]]] - V[ids[edges[:, 1]]], axis=1).mean())
     tets = np.asarray(mesh.tets)
     floor = config.pit_floor * np.clip(mesh.signed_volumes(), 0.0, None)
-    x = torch.tensor(V)
-    moved = _flatten_pits(x, ids, lfaces, config.pit_depth * h, tets, floor)
-    V[moved] = x[moved].numpy()
-    return V, int(len(moved))
+    return V, _flatten_pits(V, ids, lfaces, config.pit_depth * h, tets, floor)
 
 
-def _flatten_pits(x: torch.Tensor, ids: np.ndarray, lfaces: np.ndarray, depth: float, tets: np.ndarray,
-                  floor: np.ndarray) -> np.ndarray:
+def _flatten_pits(X: np.ndarray, ids: np.ndarray, lfaces: np.ndarray, depth: float, tets: np.ndarray,
+                  floor: np.ndarray) -> int:
     """Lift every one-tet pit towards its rim, in place: a boundary vertex with exactly three
     boundary neighbours that lies more than ``depth`` below the plane through them (their
     triangle, oriented like the fan of the vertex's boundary faces) moves straight onto that
     plane, or as far towards it as keeps each of its tets above its ``floor`` (M,) volume (a
     tet's volume is linear in one vertex's position, so the largest such fraction of the move
-    is exact). Returns the vertex ids (into ``x`` (V, 3)) moved. ``ids`` (B,) are the boundary
-    vertices, ``lfaces`` (F, 3) the boundary faces in indices into ``ids``, ``tets`` (M, 4)."""
+    is exact). Moves ``X`` (V, 3) in place and returns how many vertices moved. ``ids`` (B,)
+    are the boundary vertices, ``lfaces`` (F, 3) the boundary faces in indices into ``ids``,
+    ``tets`` (M, 4)."""
     deg = np.bincount(lfaces.reshape(-1), minlength=len(ids))
     cand = np.flatnonzero(deg == 3)
-    X = x.detach().cpu().double().numpy()
     # Each fan face (v, a, b) seen from v: its far edge a -> b. The three far edges of a closed
     # fan chain a -> b -> c -> a, whose triangle (a, b, c) has the fan's orientation.
     far = {}
     for f in lfaces[np.isin(lfaces, cand).any(axis=1)]:
         for k in range(3):
             far.setdefault(int(f[k]), []).append((int(ids[f[(k + 1) % 3]]), int(ids[f[(k + 2) % 3]])))
-    moved = []
+    moved = 0
     for v in cand:
         nxt = dict(far[int(v)])
         a = next(iter(nxt))
@@ -178,17 +175,19 @@ def _flatten_pits(x: torch.Tensor, ids: np.ndarray, lfaces: np.ndarray, depth: f
         if s >= -depth:
             continue
         inc = np.flatnonzero((tets == vid).any(axis=1))
-        Y = X.copy()
-        Y[vid] -= s * n
-        # TetMesh freezes the arrays it is given: copies, so X stays writable.
-        v0, v1 = (TetMesh(P.copy(), tets[inc], validate=False).signed_volumes() for P in (X, Y))
+        # The vertex's tets on their own vertices (a fresh array: TetMesh freezes what it gets).
+        used, local = np.unique(tets[inc], return_inverse=True)
+        P = X[used]
+        v0 = TetMesh(P, local.reshape(-1, 4), validate=False).signed_volumes()
+        P = P.copy()
+        P[used == vid] -= s * n
+        v1 = TetMesh(P, local.reshape(-1, 4), validate=False).signed_volumes()
         shrink = v1 < v0
         t = min(1.0, float(np.min((v0 - floor[inc])[shrink] / (v0 - v1)[shrink]))) if shrink.any() else 1.0
         if t > 0:
             X[vid] -= t * s * n
-            x[vid] = torch.as_tensor(X[vid], dtype=x.dtype, device=x.device)
-            moved.append(vid)
-    return np.asarray(moved, dtype=np.int64)
+            moved += 1
+    return moved
 
 
 class _Fit:
