@@ -929,9 +929,9 @@ class ImproveConfig:
 
 @dataclass(frozen=True)
 class PolishConfig:
-    """The silhouette polish between cleanup and the element improvement (:mod:`holowarp.stages.polish`,
-    which has the measurements): the boundary vertices fitted to the training masks, several
-    views per step.
+    """The silhouette polish between cleanup and the element improvement, with a short second
+    fit after it (:mod:`holowarp.stages.polish`, which has the measurements): the boundary
+    vertices fitted to the training masks, several views per step.
 
     Attributes:
         enabled: run it in ``reconstruct`` (``--no-polish`` turns it off).

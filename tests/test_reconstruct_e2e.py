@@ -113,7 +113,8 @@ def test_report_accounts_for_every_scheduled_event(tiny_run):
     # targets are measured at the fast preset's resolution (issue 13's table): at this 40 px
     # run's coarse tets the surface budget runs out before every cap is mended.
     assert imp["after"]["eta_min"] >= 0.01 and imp["eta_histogram_after"]["below_0.01"] == 0
-    # The silhouette polish runs last and brings the boundary closer to the masks.
+    # The silhouette polish (before §7b, with a short second fit after it) brings the boundary
+    # closer to the masks.
     pol = report["polish"]
     assert pol["steps"] == tiny_config().polish.steps and st["polish"]["seconds"] > 0
     assert pol["mask_l1_after"] < pol["mask_l1_before"] and isinstance(pol["pits_lifted"], int)

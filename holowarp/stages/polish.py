@@ -53,12 +53,16 @@ from holowarp.tetmesh import TetMesh
 __all__ = ["lift_pits", "polish_silhouettes"]
 
 
-def _boundary_graph(faces: np.ndarray):
-    """Boundary vertex ids (B,), faces re-indexed to them (F, 3) and unique edges (E, 2)."""
+def _boundary_graph(mesh: TetMesh):
+    """``mesh``'s boundary vertex ids (B,), boundary faces re-indexed to them (F, 3), unique
+    boundary edges (E, 2) and mean boundary edge length h (the unit of every length here)."""
+    faces = np.asarray(mesh.boundary_faces())
     ids, local = np.unique(faces, return_inverse=True)
     lf = local.reshape(faces.shape)
-    e = np.sort(np.concatenate([lf[:, [0, 1]], lf[:, [1, 2]], lf[:, [2, 0]]]), axis=1)
-    return ids, lf, np.unique(e, axis=0)
+    e = np.unique(np.sort(np.concatenate([lf[:, [0, 1]], lf[:, [1, 2]], lf[:, [2, 0]]]), axis=1), axis=0)
+    V = np.asarray(mesh.vertices)
+    h = float(np.linalg.norm(V[ids[e[:, 0]]] - V[ids[e[:, 1]]], axis=1).mean()) if len(e) else 0.0
+    return ids, lf, e, h
 
 
 def _mask_l1(x, faces, dataset, views, masks) -> float:
@@ -89,19 +93,18 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
         ``reverted`` (vertex moves put back by the volume floor) and ``seconds``.
     """
     from holowarp.ops.tet_energy import vertex_tets
-    from holowarp.stages.geometry import revert_inverting_moves, signed_volumes_t
+    from holowarp.stages.geometry import signed_volumes_t
 
     t0 = time.perf_counter()
     dev = torch.device(device)
     train = np.asarray(dataset.train_idx)
-    ids, lfaces, edges = _boundary_graph(np.asarray(mesh.boundary_faces()))
+    ids, lfaces, edges, h = _boundary_graph(mesh)
     x0 = torch.tensor(np.asarray(mesh.vertices), dtype=torch.float32, device=dev)
     x = x0.clone()
     tets = torch.tensor(np.asarray(mesh.tets), dtype=torch.int64, device=dev)
     ids_t = torch.tensor(ids, dtype=torch.int64, device=dev)
     faces = torch.tensor(lfaces, dtype=torch.int32, device=dev)
     e = torch.tensor(edges, dtype=torch.int64, device=dev)
-    h = float((x[ids_t][e[:, 0]] - x[ids_t][e[:, 1]]).norm(dim=1).mean())
     floor = config.min_volume_fraction * signed_volumes_t(x, tets).clamp_min(0.0)
     incidence = vertex_tets(tets, x.shape[0])
     xb0 = x[ids_t].clone()
@@ -135,9 +138,8 @@ def lift_pits(mesh: TetMesh, config: PolishConfig) -> tuple[np.ndarray, int]:
 
     Runs before the element improvement, which mends the tets a lift flattens. Returns
     (vertices (V, 3) float64, number of vertices lifted)."""
-    ids, lfaces, edges = _boundary_graph(np.asarray(mesh.boundary_faces()))
+    ids, lfaces, _, h = _boundary_graph(mesh)
     V = np.array(mesh.vertices, dtype=np.float64)
-    h = float(np.linalg.norm(V[ids[edges[:, 0]]] - V[ids[edges[:, 1]]], axis=1).mean())
     tets = np.asarray(mesh.tets)
     floor = config.pit_floor * np.clip(mesh.signed_volumes(), 0.0, None)
     return V, _flatten_pits(V, ids, lfaces, config.pit_depth * h, tets, floor)
