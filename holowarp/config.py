@@ -487,13 +487,13 @@ class TopologyConfig:
             -> 0.730, spot 0.962 -> 0.969), normal consistency on 7 of 8 (bob 0.9919 ->
             0.9935, above the visual hull's 0.9925; spot 0.9828 -> 0.9859, the hull 0.9864;
             lower on the mug, 0.9652 -> 0.9617), Hausdorff lower on 6 of 8 (bob 0.018 ->
-            0.008; higher on the star, 0.019 -> 0.031, and the bowl), with run times 0-18% longer, within the spread of repeated runs. It
-            stays off the default for its costs: twice the tets (bob 31k -> 60k, dented box
-            79k -> 148k), so a drop simulation takes 2.6x as long (fandisk, 16.7 s against
-            6.3 s, both stable), peak memory up to 1.24 GB (dented box; issue 17's budget is
-            1 GB), and a lower worst dihedral angle after §7b on five objects (fandisk 7.1°
-            -> 1.6°, bob 11.1° -> 7.7°). ``--refine-factor 0.7`` gives it to whoever wants the
-            surface more.
+            0.008; higher on the star, 0.019 -> 0.031, and the bowl), with run times 0-18%
+            longer, within the spread of repeated runs. It stays off the default for its
+            costs: twice the tets (bob 31k -> 60k, dented box 79k -> 148k), so a drop
+            simulation takes 2.6x as long (fandisk, 16.7 s against 6.3 s, both stable), peak
+            memory up to 1.24 GB (dented box; issue 17's budget is 1 GB), and a lower worst
+            dihedral angle after §7b on five objects (fandisk 7.1° -> 1.6°, bob 11.1° ->
+            7.7°). ``--refine-factor 0.7`` gives it to whoever wants the surface more.
         refine_where: ``"band"`` refines the whole band; ``"silhouette"`` only its tets with a
             vertex outside the masks' (tolerant) visual hull, the tets that straddle a
             see-through gap narrower than they are, so that the mask loss and the next prune
