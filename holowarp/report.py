@@ -16,7 +16,8 @@ closes, and ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews`
 ``improve`` (the element improvement's section, :func:`holowarp.stages.improve.improve`;
 ``null`` when ``config.improve.enabled`` is off), ``polish`` (the silhouette polish's section,
 :func:`holowarp.stages.polish.polish_silhouettes` with ``pits_lifted`` and ``after``, the
-second fit's own section after §7b; ``null`` when off), ``metrics`` (method.md §9) when the
+second fit's own section after §7b with ``angle_put_back``, the vertices
+:func:`holowarp.stages.polish.keep_angles` put back; ``null`` when off), ``metrics`` (method.md §9) when the
 dataset has a ground-truth mesh, and ``scene`` (method.md §11, :func:`scene_objects`) when
 the run is scene level. The mesh counts and qualities are those of the final mesh
 (after improvement).
@@ -286,11 +287,13 @@ def _touch_up(model, clean, dataset, config, device, state, polish_info, *, impr
         return clean
     from dataclasses import replace
 
-    from holowarp.stages.polish import polish_silhouettes
+    from holowarp.stages.polish import keep_angles, polish_silhouettes
 
     t0 = time.perf_counter()
     V, info = polish_silhouettes(clean, dataset, replace(p, steps=p.after_steps, min_volume_fraction=p.after_volume_fraction),
                                  seed=config.seed + 1, device=str(device))
+    if p.after_angle_floor is not None:
+        V, info["angle_put_back"] = keep_angles(clean, V, p.after_angle_floor)
     polish_info["after"] = info
     state.add_time("polish", time.perf_counter() - t0, 0)
     return _move_vertices(model, clean, V)

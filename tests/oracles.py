@@ -81,3 +81,20 @@ def point_triangle_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray, c:
     q = np.where(((d3 >= 0) & (d4 <= d3))[..., None], b, q)
     q = np.where(((d1 <= 0) & (d2 <= 0))[..., None], a, q)
     return np.linalg.norm(p - q, axis=-1)
+
+
+def min_dihedral_deg(V: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Smallest interior dihedral angle (M,) in degrees of each tet, from the two other
+    vertices' directions perpendicular to each edge (not from face normals, as the library
+    does)."""
+    P = np.asarray(V, dtype=np.float64)[np.asarray(T)]
+    out = np.full(len(P), np.inf)
+    for i, j, k, l in ((0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2), (1, 2, 0, 3), (1, 3, 0, 2), (2, 3, 0, 1)):
+        e = P[:, j] - P[:, i]
+        e /= np.linalg.norm(e, axis=1, keepdims=True)
+        u, w = P[:, k] - P[:, i], P[:, l] - P[:, i]
+        u -= (u * e).sum(1, keepdims=True) * e
+        w -= (w * e).sum(1, keepdims=True) * e
+        c = (u * w).sum(1) / (np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1))
+        out = np.minimum(out, np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    return out

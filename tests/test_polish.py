@@ -9,7 +9,7 @@ import trimesh
 
 from holowarp.config import PolishConfig, preset
 from holowarp.data import Dataset
-from holowarp.stages.polish import polish_silhouettes
+from holowarp.stages.polish import keep_angles, polish_silhouettes
 from holowarp.tetmesh import tetrahedralize_surface
 
 RADIUS = 0.35
@@ -71,10 +71,43 @@ def test_polish_without_steps_leaves_the_mesh_alone(grown_sphere):
     assert info["mask_l1_after"] == pytest.approx(info["mask_l1_before"])
 
 
+def test_keep_angles_puts_back_exactly_the_moves_that_cost_the_floor(grown_sphere):
+    from oracles import min_dihedral_deg
+
+    _, mesh = grown_sphere
+    rng_seed = int(np.random.SeedSequence().entropy % 2**32)  # fresh inputs; the seed is in every message
+    rng = np.random.default_rng(rng_seed)
+    V0 = np.asarray(mesh.vertices)
+    b = np.unique(mesh.boundary_faces())
+    h = float(np.median(np.linalg.norm(V0[mesh.edges()[:, 0]] - V0[mesh.edges()[:, 1]], axis=1)))
+    V1 = V0.copy()
+    V1[b] += rng.normal(scale=0.25 * h, size=(len(b), 3))
+    worst0 = min_dihedral_deg(V0, mesh.tets).min()
+    floor = min(10.0, worst0)
+    assert (min_dihedral_deg(V1, mesh.tets) < floor).sum() > 5, rng_seed  # the moves do cost angles
+    V, put_back = keep_angles(mesh, V1, 10.0)
+    # Every vertex is where the fit put it or back at its start, and the count says how many went back.
+    back = np.all(V == V0, axis=1) & np.any(V1 != V0, axis=1)
+    assert np.all(np.all(V == V1, axis=1) | np.all(V == V0, axis=1))
+    assert put_back == back.sum() > 0 and back.sum() < 0.5 * len(b), rng_seed
+    # No tet below the floor, none inverted.
+    assert min_dihedral_deg(V, mesh.tets).min() >= floor - 1e-9, rng_seed
+    assert np.all(mesh.with_vertices(V).signed_volumes() > 0)
+    # The first round puts back the vertices of the tets below the floor, and only those.
+    bad1 = min_dihedral_deg(V1, mesh.tets) < floor
+    assert np.isin(np.flatnonzero(back), mesh.tets[bad1]).any()
+    # Moves that cost nothing stay: a floor of 0 keeps every non-inverting move.
+    small = V0.copy()
+    small[b] += rng.normal(scale=1e-4 * h, size=(len(b), 3))
+    V2, n2 = keep_angles(mesh, small, 0.0)
+    assert n2 == 0 and np.array_equal(V2, small)
+
+
 @pytest.mark.parametrize("bad", [dict(steps=-1), dict(views=0), dict(steps=2.5), dict(lr=float("nan")),
                                  dict(smooth=-1.0), dict(min_volume_fraction=1.0), dict(check_views=0),
                                  dict(pit_depth=-0.1), dict(pit_floor=1.0), dict(after_steps=-1),
-                                 dict(after_volume_fraction=1.0)])
+                                 dict(after_volume_fraction=1.0), dict(after_angle_floor=-1.0),
+                                 dict(after_angle_floor=90.0), dict(after_angle_floor=True)])
 def test_polish_settings_are_checked(bad):
     with pytest.raises(ValueError, match="PolishConfig"):
         PolishConfig(**bad)

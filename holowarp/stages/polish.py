@@ -22,7 +22,9 @@ Interior vertices do not move. After every step, vertices of tets that fell belo
 improvement (§7b), which runs next, finds the elements much as the main loop left them.
 
 A second, shorter fit follows the element improvement (``PolishConfig.after_steps``, under a
-tighter floor), since §7b's boundary flips and cap deletions undo part of the first.
+tighter floor), since §7b's boundary flips and cap deletions undo part of the first. Its
+moves that would take a tet's smallest dihedral angle below §7b's worst (or below 10°,
+§7b's target, where §7b did better) are then put back (:func:`keep_angles`).
 
 Before the fit, :func:`lift_pits` lifts the one-tet pits (a boundary vertex with three
 boundary neighbours, most of an edge below their plane) that the main loop leaves on some
@@ -63,7 +65,7 @@ import torch
 from holowarp.config import PolishConfig
 from holowarp.tetmesh import TetMesh
 
-__all__ = ["lift_pits", "polish_silhouettes"]
+__all__ = ["keep_angles", "lift_pits", "polish_silhouettes"]
 
 
 def _boundary_graph(mesh: TetMesh):
@@ -143,6 +145,42 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
     moved_any = (x != x0).any(dim=1).cpu().numpy()
     out[moved_any] = x[moved_any].cpu().double().numpy()
     return out, info
+
+
+def keep_angles(mesh: TetMesh, vertices, floor_deg: float) -> tuple[np.ndarray, int]:
+    """Put back the moved vertices of every tet whose smallest dihedral angle at ``vertices``
+    fell below ``min(floor_deg, mesh's worst)`` (or that inverted), repeatedly, so the fit after the element
+    improvement never takes the worst angle below what §7b reached (or below ``floor_deg``
+    where §7b reached more).
+
+    Args:
+        mesh: the tet mesh before the fit (its positions are the ones put back).
+        vertices: (V, 3) positions after the fit.
+        floor_deg: degrees (method.md §7b's target, 10).
+
+    Returns:
+        (vertices (V, 3) float64, number of vertices put back). Terminates: a tet whose
+        vertices are all put back has its angles from ``mesh``, none below the floor.
+    """
+    V0 = np.asarray(mesh.vertices, dtype=np.float64)
+    V = np.array(vertices, dtype=np.float64)
+    T = np.asarray(mesh.tets)
+    floor = min(float(floor_deg), float(np.nanmin(mesh.dihedral_angles())))
+    moved = np.any(V != V0, axis=1)
+    put_back = 0
+    while moved.any():
+        cand = np.flatnonzero(moved[T].any(axis=1))  # only tets with a moved vertex changed
+        local = TetMesh(V.copy(), T[cand], validate=False)  # TetMesh freezes what it gets
+        ang = local.dihedral_angles().min(axis=1)
+        bad = cand[~(ang >= floor) | (local.signed_volumes() <= 0)]  # nan (degenerate) and inverted are bad
+        back = np.unique(T[bad])
+        back = back[moved[back]]
+        if len(back) == 0:
+            break
+        V[back] = V0[back]
+        moved[back] = False
+        put_back += len(back)
+    return V, put_back
 
 
 def lift_pits(mesh: TetMesh, config: PolishConfig) -> tuple[np.ndarray, int]:
