@@ -76,6 +76,16 @@ def _set_threads(threads) -> None:
         sys.modules["torch"].set_num_threads(1)
 
 
+#: Seeds go to NumPy's and torch's generators, which take 0 <= seed < 2**64 (torch) and any
+#: non-negative integer (NumPy); 2**63 keeps a margin for derived seeds.
+SEED_LIMIT = 2**63
+
+
+def _check_seed(seed) -> None:
+    if seed is not None and not 0 <= seed < SEED_LIMIT:
+        raise InputError(f"--seed {seed}: must be an integer in [0, 2**63)")
+
+
 def run(body, args) -> int:
     """Call ``body(args)`` and turn holowarp's errors into the convention above.
 
@@ -86,6 +96,7 @@ def run(body, args) -> int:
 
     try:
         _set_threads(getattr(args, "threads", None))
+        _check_seed(getattr(args, "seed", None))
         with registered_run():  # running commands share the cores (holowarp.device.cpu_threads)
             rc = body(args)
     except InputError as e:

@@ -112,6 +112,13 @@ def test_schedule_events_come_in_order_and_validation_names_the_broken_rule():
             bad.validate()
 
 
+@pytest.mark.parametrize("seed", [-1, 2**63, 1.5, True, "7"])
+def test_a_seed_outside_the_generators_range_is_refused_by_name(seed):
+    with pytest.raises(ValueError, match="ReconConfig.seed"):
+        replace(preset("fast"), seed=seed)
+    assert replace(preset("fast"), seed=2**63 - 1).seed == 2**63 - 1
+
+
 def test_first_prune_makes_scales_learnable_and_opacities_free_from_the_field():
     from holowarp.stages.topology import GaussianOptimizers, after_first_prune, prune
 
