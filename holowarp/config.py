@@ -1046,11 +1046,11 @@ class ReconConfig:
         checkpoint_every: main-loop iterations between checkpoints.
         seed: seeds every random choice of holowarp's own (view order, initialisation), so a
             resumed run ends as the uninterrupted one would (0 <= seed < 2**63). Two fresh
-            runs with one seed still differ: fTetWild (§4) draws its own random numbers
-            (``std::random_device``; measured: five tetrahedralisations of bob's surface gave
-            five meshes of 12.1k-13.4k tets, with one thread, pinned to one core, with ASLR
-            off and with libc's ``srand`` fixed alike), so a run repeats exactly only from
-            its checkpoint after the tet initialisation on.
+            runs with one seed still differ: fTetWild (§4) is not repeatable (five
+            tetrahedralisations of bob's surface gave five meshes of 12.1k-13.4k tets, with
+            one thread, pinned to one core, with ASLR off and with libc's ``srand`` fixed
+            alike; its extension imports ``std::random_device``), so a run repeats exactly
+            only from its checkpoint after the tet initialisation on.
     """
 
     preset: str = "paper"
