@@ -17,10 +17,10 @@ closes, and ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews`
 ``null`` when ``config.improve.enabled`` is off), ``polish`` (the silhouette polish's section,
 :func:`holowarp.stages.polish.polish_silhouettes` with ``pits_lifted`` and ``after``, the
 second fit's own section after §7b with ``angle_put_back``, the vertices
-:func:`holowarp.stages.polish.keep_angles` put back; ``null`` when off), ``metrics`` (method.md §9) when the
-dataset has a ground-truth mesh, and ``scene`` (method.md §11, :func:`scene_objects`) when
-the run is scene level. The mesh counts and qualities are those of the final mesh
-(after improvement).
+:func:`holowarp.stages.polish.keep_angles` put back; ``null`` when off), ``metrics``
+(method.md §9) when the dataset has a ground-truth mesh, and ``scene`` (method.md §11,
+:func:`scene_objects`) when the run is scene level. The mesh counts and qualities are those
+of the final mesh (after improvement).
 """
 
 from __future__ import annotations

@@ -149,9 +149,9 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
 
 def keep_angles(mesh: TetMesh, vertices, floor_deg: float) -> tuple[np.ndarray, int]:
     """Put back the moved vertices of every tet whose smallest dihedral angle at ``vertices``
-    fell below ``min(floor_deg, mesh's worst)`` (or that inverted), repeatedly, so the fit after the element
-    improvement never takes the worst angle below what §7b reached (or below ``floor_deg``
-    where §7b reached more).
+    fell below ``min(floor_deg, mesh's worst)``, or that inverted, repeatedly, so the fit
+    after the element improvement never takes the worst angle below what §7b reached (or
+    below ``floor_deg`` where §7b reached more).
 
     Args:
         mesh: the tet mesh before the fit (its positions are the ones put back).
