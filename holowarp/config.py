@@ -1044,13 +1044,12 @@ class ReconConfig:
             ``transforms_test.json``, NeuS/IDR, COLMAP) holds out every this-many-th view
             for the test metrics; ``report.json -> held_out`` lists them.
         checkpoint_every: main-loop iterations between checkpoints.
-        seed: seeds every random choice of holowarp's own (view order, initialisation), so a
-            resumed run ends as the uninterrupted one would (0 <= seed < 2**63). Two fresh
-            runs with one seed still differ: fTetWild (§4) is not repeatable (five
-            tetrahedralisations of bob's surface gave five meshes of 12.1k-13.4k tets, with
-            one thread, pinned to one core, with ASLR off and with libc's ``srand`` fixed
-            alike; its extension imports ``std::random_device``), so a run repeats exactly
-            only from its checkpoint after the tet initialisation on.
+        seed: seeds every random choice (view order, initialisation, and fTetWild's through
+            :mod:`holowarp.repeatable`), so a resumed run ends as the uninterrupted one
+            would and two runs with one seed, dataset and settings give one mesh on one
+            machine (0 <= seed < 2**63). Where :mod:`holowarp.repeatable` cannot seed
+            fTetWild (no C++ compiler, not Linux; a warning says so), runs differ from the
+            tet initialisation on.
     """
 
     preset: str = "paper"

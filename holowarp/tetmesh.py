@@ -585,6 +585,7 @@ def tetrahedralize_surface(
     num_threads: int = 0,
     max_faces: int | None = None,
     sizing: tuple | None = None,
+    seed: int = 0,
 ) -> TetMesh:
     """Tetrahedralise a closed triangle surface with fTetWild (pytetwild).
 
@@ -606,6 +607,9 @@ def tetrahedralize_surface(
             its vertices (absolute units), interpolated inside its tets (fTetWild's sizing
             field). fTetWild refines towards it but never coarsens past the global ideal
             edge length, so give ``edge_length_abs`` >= its largest value.
+        seed: fTetWild's random choices are drawn from this seed where
+            :mod:`holowarp.repeatable` can seed them (then one surface and one seed give one
+            mesh on one machine), else they differ from call to call.
 
     Returns:
         A positively oriented :class:`TetMesh` (fTetWild output is re-oriented and unused
@@ -614,6 +618,9 @@ def tetrahedralize_surface(
     Raises:
         TetMeshError: the input is empty or fTetWild produced no tets.
     """
+    from holowarp import repeatable
+
+    rd = repeatable.random_device()  # before pytetwild's extension loads, so that it binds to it
     import pytetwild
 
     v = np.ascontiguousarray(vertices, dtype=np.float64)
@@ -628,9 +635,13 @@ def tetrahedralize_surface(
         # Fresh writable copies: the binding refuses read-only arrays (TetMesh's are).
         bg = dict(bg_vertices=np.array(bv, dtype=np.float64, order="C"),
                   bg_tets=np.array(bt, dtype=np.int32, order="C"), bg_values=np.array(bs, dtype=np.float64, order="C"))
+    if rd is not None:
+        rd.seed(seed)
     tv, tt = _in_scratch_folder(pytetwild.tetrahedralize, v, f, edge_length_fac=edge_length_fac,
                                 edge_length_abs=edge_length_abs, optimize=optimize, epsilon=epsilon,
                                 num_threads=num_threads, quiet=True, **bg)
+    if rd is not None and rd.draws() == 0:
+        repeatable.unbound()
     if tt is None or len(tt) == 0:
         raise TetMeshError("tetrahedralize_surface: fTetWild produced no tetrahedra")
     mesh, _ = TetMesh(tv, tt).oriented()

@@ -21,7 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 LAYERS = [
     ("kernels", ["holowarp.kernels"]),
     ("base", ["holowarp.errors", "holowarp.fileio", "holowarp.device", "holowarp.camera", "holowarp.frame",
-              "holowarp.config", "holowarp.progress", "holowarp.scenes"]),
+              "holowarp.config", "holowarp.progress", "holowarp.scenes", "holowarp.repeatable"]),
     ("core", ["holowarp.tetmesh", "holowarp.primitives", "holowarp.refine"]),
     ("drivers", ["holowarp.ops", "holowarp.sim"]),
     ("io", ["holowarp.surface_io", "holowarp.mesh_io", "holowarp.usd"]),
