@@ -6,7 +6,8 @@ previews, metrics and ``report.json`` (:func:`holowarp.report.finish_run`). The 
 (:class:`holowarp.runstate.RunState`) is checkpointed atomically at every stage boundary and
 every ``checkpoint_every`` iterations; ``resume=True`` continues from it. Every random choice
 is a function of (seed, iteration), so a resumed run ends with the same result as an
-uninterrupted one (fTetWild is not deterministic: its output is checkpointed before use).
+uninterrupted one, and fTetWild's is seeded by the run's seed where :mod:`holowarp.repeatable`
+can do so (its output is checkpointed before use, so a resume never depends on that).
 """
 
 from __future__ import annotations

@@ -174,8 +174,8 @@ def test_a_killed_run_resumes_to_the_same_result(torus_dataset, tmp_path, monkey
     cfg = replace(cfg, schedule=replace(cfg.schedule, stage0_iters=40), checkpoint_every=25)
     base = tmp_path / "base"
 
-    # Stop right after the tet initialisation so both runs share its (non-deterministic)
-    # fTetWild output.
+    # Stop right after the tet initialisation so both runs share its fTetWild output (only
+    # repeatable where holowarp.repeatable can seed it).
     def stop(*a, **k):
         raise KeyboardInterrupt
 

@@ -1,7 +1,8 @@
 """The pipeline's numbers do not drift: a fixed start gives the recorded mesh, bit for bit.
 
-fTetWild is not deterministic, so the start is built without it: a box tet mesh around a
-synthesised torus with the torus's analytic signed distance as the vertex field, checkpointed
+fTetWild is repeatable only where :mod:`holowarp.repeatable` can seed it, so the start is built
+without it: a box tet mesh around a synthesised torus with the torus's analytic signed
+distance as the vertex field, checkpointed
 at the start of the main loop, then resumed through the main loop (topology phase, prunes,
 Gaussian phase, mesh blocks), cleanup, element improvement and export. The hash covers the final vertex positions
 (float64 of the float32 optimisation) and the tets.
