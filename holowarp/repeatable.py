@@ -15,6 +15,9 @@ machine give one mesh in a fresh process: three processes tetrahedralising a run
 hull gave one hash, as did two whole runs. fTetWild's output also depends on the process's
 history (a second call with the same seed in the same process gave another mesh, the same
 one in every process), so :mod:`holowarp` calls it once per run, at the tet initialisation.
+The library is loaded at the first tetrahedralisation; native code loaded after it that reads
+``std::random_device`` (none in a run, but e.g. an extension imported later by the caller)
+draws from the same stream, and so becomes repeatable too.
 
 Where it cannot work, tetrahedralisation goes on as before and :func:`status` says why (one
 warning per process): not Linux (other loaders do not interpose this way), no C++ compiler
