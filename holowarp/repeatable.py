@@ -37,7 +37,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-__all__ = ["SeededRandomDevice", "random_device", "status", "cache_dir"]
+__all__ = ["SeededRandomDevice", "random_device", "unbound", "status", "cache_dir"]
 
 SOURCE = Path(__file__).resolve().parent / "assets" / "native" / "seeded_random_device.cpp"
 _EXTENSION = "pytetwild.PyfTetWildWrapper"
@@ -132,8 +132,8 @@ def random_device() -> SeededRandomDevice | None:
             else:
                 try:
                     _state["device"] = SeededRandomDevice(ctypes.CDLL(str(path), mode=ctypes.RTLD_GLOBAL))
-                except OSError as e:
-                    _state["reason"] = f"{path}: cannot load ({e})"
+                except (OSError, AttributeError) as e:  # unloadable, or not our library
+                    _state["reason"] = f"{path}: cannot load ({e}); delete it to rebuild"
     if _state["device"] is None:
         _warn_once()
     return _state["device"]
