@@ -22,6 +22,7 @@ import argparse
 import logging
 import sys
 
+from holowarp.config import valid_seed
 from holowarp.errors import InputError, RunError, one_line
 
 __all__ = ["PRESET_NAMES", "parser", "add_device", "add_quiet", "add_preset", "run", "fail"]
@@ -76,13 +77,8 @@ def _set_threads(threads) -> None:
         sys.modules["torch"].set_num_threads(1)
 
 
-#: Seeds go to NumPy's and torch's generators, which take 0 <= seed < 2**64 (torch) and any
-#: non-negative integer (NumPy); 2**63 keeps a margin for derived seeds.
-SEED_LIMIT = 2**63
-
-
 def _check_seed(seed) -> None:
-    if seed is not None and not 0 <= seed < SEED_LIMIT:
+    if seed is not None and not valid_seed(seed):
         raise InputError(f"--seed {seed}: must be an integer in [0, 2**63)")
 
 

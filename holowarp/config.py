@@ -1026,6 +1026,16 @@ class PolishConfig:
             raise ValueError(f"PolishConfig.after_angle_floor must be None or degrees in [0, 90), got {a!r}")
 
 
+#: Seeds go to NumPy's generators (any integer >= 0), torch's (0 <= seed < 2**64) and the
+#: seeded random device of :mod:`holowarp.repeatable` (uint64); 2**63 leaves a margin.
+SEED_LIMIT = 2**63
+
+
+def valid_seed(seed) -> bool:
+    """Whether ``seed`` is an integer (not a bool) in [0, SEED_LIMIT)."""
+    return isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed < SEED_LIMIT
+
+
 @dataclass(frozen=True)
 class ReconConfig:
     """The whole reconstruction.
@@ -1069,7 +1079,7 @@ class ReconConfig:
     seed: int = 0
 
     def __post_init__(self):
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or not 0 <= self.seed < 2**63:
+        if not valid_seed(self.seed):
             raise ValueError(f"ReconConfig.seed must be an integer in [0, 2**63), got {self.seed!r}")
 
     def scaled(self, factor: float) -> "ReconConfig":
