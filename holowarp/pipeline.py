@@ -241,6 +241,10 @@ class _Run:
 
     def finish(self) -> dict:
         """No checkpoint here: --resume of a finished run redoes cleanup and export alike."""
+        # The main loop's view tensors, optimiser moments and evidence maps are not needed any
+        # more; dropped here, their memory is reused by the finish's renders instead of
+        # adding to the run's peak (the finish is where a run's RSS peaks, issue 17).
+        self.tensors = self.coarse = self.opts = self.evidence = self.edges = None
         name = "Bob" if self.dataset_path is None else (self.data_dir.name or "Object")
         return finish_run(self.model, self.ds, self.data_dir, self.out, self.cfg, self.device, self.state,
                           self.history.read(), name=name)

@@ -336,7 +336,8 @@ def _error_views(path: Path, pred, gt, title: str, *, res: int = 400, device: st
         tiles = _render_shaded(V, F, rgb, centre + dist * views, centre, res=res, device=device)
         row = np.concatenate(tiles + [_colour_bar(res)], axis=1)
         text = label + (f" ({title})" if title else "") + f"; {ERROR_CMAP}, 0 to {ERROR_SCALE}"
-        rows.append(np.asarray(labelled(row, text, min_height=res), dtype=np.float64) / 255.0)
+        # Kept as 8-bit: float64 copies of the 1690x800 sheet were the run's peak memory.
+        rows.append(np.asarray(labelled(row, text, min_height=res), dtype=np.uint8))
     from PIL import Image
 
-    return _save(path, Image.fromarray((np.concatenate(rows, axis=0) * 255 + 0.5).astype(np.uint8)))
+    return _save(path, Image.fromarray(np.concatenate(rows, axis=0)))
