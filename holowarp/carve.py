@@ -8,7 +8,9 @@ placement from soft mask edges. Users:
 - preflight (:mod:`holowarp.preflight`): do the masks agree on a 3D object at all?
 - the vertex-field initialisation of §5 (:func:`holowarp.stages.topology.init_phi`);
 - stage 0's initial surfels (:func:`sample_points_in_hull`);
-- the visual-hull baseline (:mod:`holowarp.baselines.hull`), on a grid.
+- the visual-hull baseline (:mod:`holowarp.baselines.hull`), on a grid;
+- the prune's genus guard, whose bound is the hull's genus (:func:`hull_genus`): a tunnel
+  some view sees through is a tunnel of the hull.
 
 Silhouettes cannot see concavities; a rendered surface can: :func:`in_front_of_surface`
 marks the points some view sees in front of the surface (depth carving), which the vertex
@@ -34,6 +36,8 @@ __all__ = [
     "view_sphere",
     "sample_points_in_hull",
     "in_front_of_surface",
+    "hull_genus",
+    "solid_genus",
 ]
 
 
@@ -75,6 +79,52 @@ def hull_grid(dataset, views, origin, spacing: float, shape, *, outside_is_empty
     v = _views(dataset, views)
     return carve_grid(dataset.viewmats[v], dataset.K[v], dataset.masks[v], origin, spacing, shape,
                       outside_is_empty=outside_is_empty, device=device)
+
+
+def solid_genus(occupied: np.ndarray) -> int:
+    """Genus of the boundary of the largest 26-connected piece of a voxel set (NX, NY, NZ)
+    bool, its cavities filled: ``1 - chi`` with ``chi`` the Euler characteristic of the union
+    of the closed voxels (vertices - edges + faces - cubes of the cubical complex). A ball
+    gives 0, a solid torus 1, a plate with three holes 3."""
+    from scipy import ndimage
+
+    lab, n = ndimage.label(occupied, structure=np.ones((3, 3, 3), dtype=bool))
+    if n == 0:
+        return 0
+    solid = lab == (np.argmax(np.bincount(lab.ravel())[1:]) + 1)
+    # The complement's 6-connected pieces that do not reach the border are cavities.
+    air, _ = ndimage.label(~np.pad(solid, 1))
+    solid = np.pad(solid, 1) | (air != air[0, 0, 0])
+    p = np.pad(solid, 1)
+
+    def cells(axes: tuple) -> int:
+        # The cells spanning the ``axes`` directions of the complex one grid step less long
+        # there: present when any voxel around them is.
+        shape = tuple(d - 1 if i in axes else d for i, d in enumerate(p.shape))
+        out = np.zeros(shape, dtype=bool)
+        for offs in np.ndindex(*(2 if i in axes else 1 for i in range(3))):
+            out |= p[tuple(slice(o, o + shape[i]) for i, o in enumerate(offs))]
+        return int(out.sum())
+
+    faces = sum(cells((a,)) for a in range(3))
+    edges = sum(cells(tuple(b for b in range(3) if b != a)) for a in range(3))
+    chi = cells((0, 1, 2)) - edges + faces - int(p.sum())
+    return 1 - chi
+
+
+def hull_genus(dataset, lo, hi, views=None, *, cells: int = 160, device: str = "cpu") -> int:
+    """Genus of the visual hull of ``views`` (default: the training views) inside the box
+    ``lo``..``hi`` (3,), carved on a grid of ``cells`` along the box's longest side
+    (:func:`solid_genus` of the carve field above 0.5). A tunnel some view sees through is a
+    tunnel of the hull, so no reconstruction whose tunnels the views show has a larger genus;
+    see-through gaps finer than the grid are missed (they are finer than a tet as well)."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    spacing = float((hi - lo).max()) / int(cells)
+    if not spacing > 0:
+        return 0
+    shape = tuple(int(np.ceil(e / spacing)) + 7 for e in hi - lo)
+    field = hull_grid(dataset, views, lo - 3 * spacing, spacing, shape, device=device)
+    return solid_genus(field > 0.5)
 
 
 def look_region(viewmats) -> tuple[np.ndarray, float]:

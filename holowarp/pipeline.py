@@ -178,7 +178,9 @@ class _Run:
         if self.cfg.topology.uses_evidence and self.evidence is None:
             self.evidence = EmptyEvidence(self.out / "stage0" / "gaussians.ply", self.ds, self.cfg.topology,
                                           device=self.device)
-        info = prune(self.model, self.cfg.topology, evidence=self.evidence(self.model.mesh()) if self.evidence else None)
+        mesh = self.model.mesh()
+        info = prune(self.model, self.cfg.topology, evidence=self.evidence(mesh) if self.evidence else None,
+                     genus_bound=(lambda: self.evidence.hull_genus(mesh)) if self.evidence else None)
         if self.cfg.schedule.prune_at.index(ev.iteration) == self.cfg.topology.refine_at_prune:
             refined = refine_near_surface(self.model, self.cfg.topology, self.ds)
             if refined is not None:

@@ -465,7 +465,30 @@ def test_genus_guard_sees_handles_cut_while_tunnels_open():
     assert plain["genus_after"] == plain["genus_before"] == 0 and model.mesh().num_components() == 1
     model = _model_with_low(a, hole | cut)
     info = prune(model, replace(NO_PITS, split_guard=None), evidence=hole)
+    assert info["genus_after"] == 1 and info["kept_for_genus"] > 0 and info["genus_over_bound"] == 0
+    # The bound is the visual hull's genus: a hull with the tunnel allows it, one without
+    # vetoes the guard and the prune goes ahead as the plain rule.
+    model = _model_with_low(a, hole | cut)
+    info = prune(model, replace(NO_PITS, split_guard=None), evidence=hole, genus_bound=lambda: 1)
     assert info["genus_after"] == 1 and info["kept_for_genus"] > 0
+    model = _model_with_low(a, hole | cut)
+    info = prune(model, replace(NO_PITS, split_guard=None), evidence=hole, genus_bound=0)
+    assert info["genus_over_bound"] == 1 and info["kept_for_genus"] == 0
+    assert info["genus_after"] == plain["genus_after"] and info["tets_after"] == plain["tets_after"]
+
+
+def test_genus_bound_is_read_only_when_the_genus_guard_would_raise_the_genus():
+    a = box_tetmesh((5, 5, 3))
+    c = a.vertices[a.tets].mean(axis=1)
+    bore = (np.abs(c[:, 0] - 0.5) < 0.1) & (np.abs(c[:, 1] - 0.5) < 0.1)
+
+    def unread():
+        raise AssertionError("the bound was computed though no guard needed it")
+
+    # No view sees through the bore: the guard keeps a plug (genus 0), below any bound.
+    model = _model_with_low(a, bore)
+    info = prune(model, replace(NO_PITS, split_guard=None), evidence=np.zeros(a.num_tets, bool), genus_bound=unread)
+    assert info["genus_after"] == 0 and info["kept_for_genus"] > 0 and info["genus_over_bound"] == 0
 
 
 def test_simple_tets_are_exactly_those_whose_removal_keeps_the_topology(rng):

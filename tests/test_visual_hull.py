@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from holowarp.baselines.hull import VisualHullError, VisualHullSettings, visual_hull
-from holowarp.carve import hull_grid
+from holowarp.carve import hull_genus, hull_grid, solid_genus
 from holowarp.camera import intrinsics_from_fov, look_at
 from holowarp.data import Dataset
 
@@ -58,6 +58,66 @@ def test_hull_grid_is_the_min_over_views_of_bilinear_masks(rng, outside_is_empty
     ref = _carve_ref(masks, vm, K, origin, spacing, shape, outside_is_empty)
     assert (got > 0).any() and np.ptp(got) > 0.1  # a non-trivial field
     np.testing.assert_allclose(got, ref, atol=1e-5)
+
+
+def _grid(n):
+    ax = (np.arange(n) + 0.5) / n * 2 - 1
+    return np.meshgrid(ax, ax, ax, indexing="ij")
+
+
+def test_solid_genus_counts_handles_of_voxel_shapes(rng):
+    n = 40
+    x, y, z = _grid(n)
+    R, r = rng.uniform(0.45, 0.6), rng.uniform(0.15, 0.25)
+    torus = (np.hypot(x, y) - R) ** 2 + z**2 < r**2
+    assert solid_genus(torus) == 1
+    assert solid_genus(x**2 + y**2 + z**2 < rng.uniform(0.3, 0.8) ** 2) == 0
+    # A slab with k square holes through it, k drawn afresh; a void inside a ball is filled.
+    k = int(rng.integers(1, 5))
+    slab = (np.abs(z) < 0.2) & (np.abs(x) < 0.95) & (np.abs(y) < 0.5)
+    for i in range(k):
+        cx = -0.95 + (2 * i + 1) * 1.9 / (2 * k)
+        slab &= ~((np.abs(x - cx) < 0.6 / k) & (np.abs(y) < 0.3))
+    assert solid_genus(slab) == k
+    hollow = (x**2 + y**2 + z**2 < 0.8**2) & ~(x**2 + y**2 + z**2 < 0.4**2)
+    assert solid_genus(hollow) == 0
+    # Only the largest piece counts: a ball beside a smaller torus.
+    small = (np.hypot(x + 0.6, y) - 0.25) ** 2 + z**2 < 0.1**2
+    assert solid_genus(small | ((x - 0.45) ** 2 + y**2 + z**2 < 0.5**2)) == 0
+    assert solid_genus(np.zeros((4, 4, 4), bool)) == 0
+
+
+def _torus_masks(vm, K, res, R, r):
+    """Exact silhouettes of the solid torus (axis z): a pixel is inside when its ray passes
+    within r of the circle of radius R (sampled densely along the ray)."""
+    masks = np.zeros((len(vm), res, res), np.float32)
+    t = np.linspace(0.5, 5.0, 900)
+    u, v = np.meshgrid(np.arange(res) + 0.5, np.arange(res) + 0.5)
+    for i, (V, Km) in enumerate(zip(vm, K)):
+        d = np.stack([(u - Km[0, 2]) / Km[0, 0], (v - Km[1, 2]) / Km[1, 1], np.ones_like(u)], -1) @ V[:3, :3]
+        o = -V[:3, :3].T @ V[:3, 3]
+        p = o + d[..., None, :] * t[:, None]
+        q = (np.hypot(p[..., 0], p[..., 1]) - R) ** 2 + p[..., 2] ** 2
+        masks[i] = (q.min(-1) < r**2).astype(np.float32)
+    return masks
+
+
+def test_hull_genus_sees_the_tunnel_the_views_see_through(rng):
+    n, res = 14, 40
+    K = np.broadcast_to(intrinsics_from_fov(math.radians(39.3), res, res), (n, 3, 3)).copy()
+    # Twelve views from around the side (none sees through the hole) and two from above.
+    az = rng.uniform(0, 2 * np.pi) + np.arange(12) * 2 * np.pi / 12
+    el = rng.uniform(-0.15, 0.15, 12)
+    eyes = [2.2 * np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)]) for a, e in zip(az, el)]
+    vm = np.stack([look_at(p) for p in eyes] + [look_at((0.2, 0.1, 2.2), up=(0.0, 1.0, 0.0)),
+                                                look_at((-0.1, 0.3, -2.2), up=(1.0, 0.0, 0.0))])
+    R, r = rng.uniform(0.45, 0.55), rng.uniform(0.12, 0.17)
+    ds = Dataset(images=np.zeros((n, res, res, 3), np.float32), masks=_torus_masks(vm, K, res, R, r), K=K, viewmats=vm,
+                 train_idx=np.arange(n), test_idx=[])
+    box = (-(R + r) * np.ones(3), (R + r) * np.ones(3))
+    assert hull_genus(ds, *box, cells=48) == 1
+    # From the side alone no silhouette shows the hole: the hull is a disc.
+    assert hull_genus(ds, *box, views=np.arange(12), cells=48) == 0
 
 
 def test_sphere_hull_command_writes_one_manifold_tet_mesh(tmp_path):
