@@ -188,6 +188,23 @@ def test_winding_inside_test_matches_the_analytic_ball_even_with_holes(rng):
     assert np.mean(ins2[clear] == (r < 0.5)[clear]) > 0.995
 
 
+def test_winding_inside_gives_the_same_answer_on_one_thread_and_in_pieces(rng):
+    from holowarp.device import set_cpu_threads
+    from holowarp.ops.winding import winding_inside
+
+    v, f = _sphere(rng.uniform(0.3, 0.6), subdivisions=3)
+    pts = rng.uniform(-0.7, 0.7, (5_000 + int(rng.integers(0, 300)), 3))  # not a whole number of pieces
+    try:
+        set_cpu_threads(1)
+        one = winding_inside(v, f, pts)
+        set_cpu_threads(2)
+        pieces = winding_inside(v, f, pts)
+    finally:
+        set_cpu_threads(None)
+    np.testing.assert_array_equal(one, pieces)
+    assert 0 < one.sum() < len(one)
+
+
 def test_unit_cube_normalisation_centres_and_scales_by_the_reference():
     ref = np.array([[1.0, 2.0, 3.0], [3.0, 3.0, 4.0]])
     s, t = unit_cube_transform(ref)

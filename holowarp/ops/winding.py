@@ -15,6 +15,7 @@ def winding_inside(vertices, faces, points, *, device: str = "cpu") -> np.ndarra
     ``vertices`` (V, 3) / ``faces`` (F, 3) (winding number > 1/2)."""
     wp = init_warp()
     from holowarp.kernels.winding import winding_inside_kernel
+    from holowarp.ops._warp import run_chunks, thread_chunks
 
     dev = resolve_device(device)
     v = np.ascontiguousarray(vertices, dtype=np.float32)
@@ -31,5 +32,9 @@ def winding_inside(vertices, faces, points, *, device: str = "cpu") -> np.ndarra
     out = wp.zeros(len(p), dtype=wp.int32, device=dev)
     both = np.concatenate([v, p])
     span = float(np.linalg.norm(both.max(0) - both.min(0)))
-    wp.launch(winding_inside_kernel, dim=len(p), inputs=[mesh.id, pts, 2.0 * span + 1.0], outputs=[out], device=dev)
+    # The points are independent: on the CPU the launch is cut into pieces that the cores
+    # take in turn (the mug of the quality suite: 3 queries of its volume IoU, 30 s serial).
+    run_chunks(lambda a, n: wp.launch(winding_inside_kernel, dim=n, inputs=[mesh.id, pts[a:a + n], 2.0 * span + 1.0],
+                                      outputs=[out[a:a + n]], device=dev),
+               thread_chunks(len(p), dev), kernel=winding_inside_kernel, device=dev)
     return out.numpy().astype(bool)
