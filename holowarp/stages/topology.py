@@ -457,15 +457,13 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, genus_b
     with torch.no_grad():
         alpha = model.opacities().cpu().numpy()
     mesh = model.mesh()
-    T = mesh.tets
     M = model.num_tets
     low = alpha < config.prune_alpha
     info = {"tets_before": M, "low_alpha": int(low.sum()), "emptied": False}
     if low.all():
         info.update(emptied=True, pruned=0, kept_cavity=0, kept_dents=0, kept_pits=0, restored_for_manifold=0,
                     filled_sealed=0, kept_for_genus=0, kept_for_split=0, genus_over_bound=0, removed_components=0,
-                    raw_components=0,
-                    raw_non_manifold=0, tets_removed_by_component=0, tets_after=M)
+                    raw_components=0, raw_non_manifold=0, tets_removed_by_component=0, tets_after=M)
         return info
     adj = mesh.face_adjacency()
     drop = open_to_outside(low, adj)
