@@ -12,6 +12,7 @@ can do so (its output is checkpointed before use, so a resume never depends on t
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -32,7 +33,7 @@ from holowarp.stages.topology import (EmptyEvidence, GaussianOptimizers, ViewTen
                                       refine_near_surface)
 from holowarp.tetgs import TetGaussians
 
-__all__ = ["ReconstructionError", "reconstruct"]
+__all__ = ["ReconstructionError", "reconstruct", "reconstruct_alone"]
 
 
 def reconstruct(dataset_path=None, out_dir="runs/holowarp", *, config: ReconConfig, device: str = "cpu",
@@ -75,6 +76,55 @@ def reconstruct(dataset_path=None, out_dir="runs/holowarp", *, config: ReconConf
     report["peak_rss_mb"] = round(peak_rss_mb(), 1)
     atomic_write_json(out_dir / "report.json", report)
     return report
+
+
+def reconstruct_alone(dataset_path, out_dir, *, config: ReconConfig, device: str = "cpu", resume: bool = False,
+                      progress: bool = True) -> dict:
+    """:func:`reconstruct` in a fresh interpreter, as ``python -m holowarp.reconstruct`` runs it,
+    for callers that run several objects in one process (``bench quality``, the dataset runs).
+
+    fTetWild's meshes depend on what the process meshed before (the visual hull, an earlier
+    object), so a reconstruction that shares its process gets another mesh than the same data
+    and seed on their own, and its report's ``peak_rss_mb`` includes the others' memory. The
+    child uses the caller's torch thread count. Returns the report; the child's exception is
+    raised again here (a ``RuntimeError`` naming it when it cannot be passed back).
+    """
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
+    errors = ctx.Queue()
+    child = ctx.Process(target=_reconstruct_child, args=(str(dataset_path), str(out_dir), config, device, resume,
+                                                         progress, torch.get_num_threads(), errors))
+    child.start()
+    child.join()
+    if child.exitcode != 0:
+        import pickle
+
+        try:
+            err = pickle.loads(errors.get(timeout=5))
+        except Exception:  # noqa: BLE001 -- killed before it could say why
+            err = RuntimeError(f"reconstructing {dataset_path} into {out_dir}: the process ended with status "
+                               f"{child.exitcode}")
+        raise err
+    return json.loads((Path(out_dir) / "report.json").read_text())
+
+
+def _reconstruct_child(dataset_path, out_dir, config, device, resume, progress, threads, errors) -> None:
+    torch.set_num_threads(threads)
+    try:
+        reconstruct(dataset_path, out_dir, config=config, device=device, resume=resume, progress=progress)
+    except BaseException as e:  # passed back whole, so the caller sees holowarp's own error types
+        import pickle
+
+        try:
+            data = pickle.dumps(e)
+            pickle.loads(data)
+        except Exception:  # noqa: BLE001 -- cannot make the trip: its type and message
+            data = pickle.dumps(RuntimeError(f"{type(e).__name__}: {e}"))
+        errors.put(data)
+        errors.close()
+        errors.join_thread()
+        raise SystemExit(1) from None
 
 
 def _run_config(config: ReconConfig, dataset, device: str, progress: bool) -> tuple[ReconConfig, list | None]:

@@ -213,3 +213,13 @@ def test_bad_output_folder_and_arguments_fail_before_any_work(tmp_path, capsys):
     assert main([str(tmp_path / "missing.toml"), "--out", str(tmp_path / "o")]) == 2
     assert "missing.toml: no such file" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_reconstruct_alone_raises_the_childs_own_error(tmp_path):
+    """The dataset runs reconstruct each object in a fresh interpreter; a bad input still
+    comes back as holowarp's error, with its message, not as a bare exit status."""
+    from holowarp.config import preset
+    from holowarp.pipeline import ReconstructionError, reconstruct_alone
+
+    with pytest.raises(ReconstructionError, match="missing: no such folder"):
+        reconstruct_alone(tmp_path / "missing", tmp_path / "out", config=preset("fast"), progress=False)

@@ -124,6 +124,7 @@ def run_object(name: str, work: str, *, res: int, views: int, grid: int, scale_i
     from holowarp.baselines.hull import VisualHullSettings, run_visual_hull
     from holowarp.config import preset
     from holowarp.metrics import evaluate_mesh
+    from holowarp.pipeline import reconstruct_alone
     from holowarp.synthesis import synthesize
 
     root = Path(work) / name
@@ -139,39 +140,14 @@ def run_object(name: str, work: str, *, res: int, views: int, grid: int, scale_i
         cfg = replace(preset("fast"), resolution=res)
         cfg = cfg.scaled(scale_iters) if scale_iters else cfg
         cfg = apply_overrides(cfg, overrides)
-        _reconstruct_alone(data, rec, cfg, device)
+        reconstruct_alone(data, rec, config=cfg, device=device, resume=(rec / "checkpoints").is_dir(),
+                          progress=False)
     rep = json.loads((rec / "report.json").read_text())
     out = {"object": name, "genus_expected": OBJECTS[name][2], "concave": OBJECTS[name][3], "seconds_hull": t_vh,
            "seconds_reconstruct": rep["seconds_total"]}
     for side, path in (("hull", vh / "tetmesh.vtu"), ("holowarp", rec / "tetmesh.vtu")):
         out[side] = evaluate_mesh(path, data / "gt.obj", device=device)
     return out
-
-
-def _reconstruct_child(data: str, rec: str, cfg, device: str) -> None:
-    import torch
-
-    torch.set_num_threads(1)
-    from holowarp.pipeline import reconstruct
-
-    reconstruct(data, rec, config=cfg, device=device, resume=(Path(rec) / "checkpoints").is_dir(), progress=False)
-
-
-def _reconstruct_alone(data: Path, rec: Path, cfg, device: str) -> None:
-    """The object's reconstruction in a fresh interpreter, as ``python -m
-    holowarp.reconstruct`` runs it: fTetWild's meshes depend on what the process meshed
-    before (the hull, the previous object), so a run that shares its process with them
-    gives another mesh than the same seed on its own (the mug at seed 0: a different
-    ``tetmesh.vtu``), and its report's ``peak_rss_mb`` would include the others' memory."""
-    import multiprocessing
-
-    os.environ["OMP_NUM_THREADS"] = "1"  # the child's torch reads it when it starts
-    p = multiprocessing.get_context("spawn").Process(target=_reconstruct_child, args=(str(data), str(rec), cfg, device))
-    p.start()
-    p.join()
-    if p.exitcode != 0:
-        raise RuntimeError(f"reconstructing {data} into {rec} failed (exit status {p.exitcode}); "
-                           f"run python -m holowarp.reconstruct {data} --out {rec} to see why")
 
 
 def _ratios(row: dict) -> dict:

@@ -124,11 +124,12 @@ def _hull(o: _Object) -> None:
 
 
 def _reconstruct(o: _Object) -> None:
-    from holowarp.pipeline import reconstruct
+    from holowarp.pipeline import reconstruct_alone
 
     # resume=True continues recon/checkpoints/state.pt when a killed run left one (same settings).
-    reconstruct(str(o.data_dir), o.folder / "recon", config=o.cfg, device=o.spec.device, resume=True,
-                progress=o.progress)
+    # Its own process: the hull's fTetWild call before it would change its mesh.
+    reconstruct_alone(str(o.data_dir), o.folder / "recon", config=o.cfg, device=o.spec.device, resume=True,
+                      progress=o.progress)
 
 
 def _reference(o: _Object) -> None:
