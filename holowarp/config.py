@@ -466,8 +466,9 @@ class TopologyConfig:
             ``genus_bound``): at seed 0 the plate's last prune kept, by the evidence alone, the
             part of a low-alpha skin outside a wall whose centroids sit just inside the
             silhouettes, a handle no view shows (genus 4; F@0.005 0.9698, normal consistency
-            0.9508); bounded, genus 3 (0.9710, 0.9539). The guard trips on no other object of
-            the suite at seed 0, and lego's hull (genus 58 at 160 cells) bounds nothing.
+            0.9508); bounded, genus 3 (0.9710, 0.9539). Elsewhere in the suite (seeds 0 and 1)
+            the guard tripped only at the bowl's first prune, whose genus stayed 0 with no
+            need of the bound; lego's hull (genus 58 at 160 cells) bounds nothing.
         split_guard: the same for a prune that would cut off pieces holding more than this
             fraction of the tets it keeps, where the restricted prune keeps more of them
             (``None``: off). The images show one connected object, so a piece that a thin

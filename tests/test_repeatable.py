@@ -23,7 +23,12 @@ from holowarp.tetmesh import tetrahedralize_surface
 
 s = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
 s.vertices[:, 0] *= 1.3
-m = tetrahedralize_surface(s.vertices, s.faces, edge_length_fac=0.12, seed=int(sys.argv[1]))
+if sys.argv[2] == "initial":  # the tet initialisation of a run, which passes the run's seed on
+    from holowarp.config import TetInitConfig
+    from holowarp.stages.tet_init import initial_tetmesh
+    m = initial_tetmesh(s.vertices, config=TetInitConfig(edge_length_fac=0.12), seed=int(sys.argv[1]))
+else:
+    m = tetrahedralize_surface(s.vertices, s.faces, edge_length_fac=0.12, seed=int(sys.argv[1]))
 h = hashlib.sha256(np.asarray(m.vertices, "<f8").tobytes() + np.asarray(m.tets, "<i8").tobytes()).hexdigest()
 print(json.dumps({"hash": h, "tets": m.num_tets, **repeatable.status()}))
 """
@@ -47,6 +52,15 @@ def test_one_seed_gives_one_mesh_across_processes(tmp_path):
     assert a["tets"] > 100 and a["hash"] == b["hash"]
     assert list((tmp_path / "cache" / "native").glob("seeded_random_device-*.so"))
     assert "not repeatable" not in a["stderr"] + b["stderr"]
+
+
+def test_the_runs_seed_reaches_fTetWild_through_the_tet_initialisation(tmp_path):
+    cache = {"HOLOWARP_CACHE": str(tmp_path / "cache")}
+    a = _tetrahedralise(7, env=cache, mode="initial")
+    if not a["repeatable"]:
+        pytest.skip(f"no seeded random device on this machine: {a['reason']}")
+    b, c = _tetrahedralise(7, env=cache, mode="initial"), _tetrahedralise(8, env=cache, mode="initial")
+    assert a["hash"] == b["hash"] and a["hash"] != c["hash"] and min(a["tets"], c["tets"]) > 100
 
 
 @pytest.mark.parametrize("env, mode, why", [

@@ -123,6 +123,7 @@ def initial_tetmesh(
     config: TetInitConfig = TetInitConfig(),
     *,
     pieces=None,
+    seed: int = 0,
 ) -> TetMesh:
     """Steps 1–3 of §4: the tet mesh of the scaled convex hull of the surfel centres.
 
@@ -133,6 +134,8 @@ def initial_tetmesh(
             (:func:`holowarp.stages.objects.hull_pieces`): each is meshed at the edge length
             it would get alone (:func:`object_sizing`). None: one object, the edge length
             relative to the hull's diagonal.
+        seed: the run's seed, which fTetWild's random choices are drawn from
+            (:func:`holowarp.tetmesh.tetrahedralize_surface`).
 
     Raises:
         HullError: too few points survive, or they span no 3D hull.
@@ -147,7 +150,8 @@ def initial_tetmesh(
         )
     V, F = scaled_hull(P, scale=config.hull_scale)
     if not pieces:
-        return tetrahedralize_surface(V, F, edge_length_fac=config.edge_length_fac, epsilon=config.epsilon)
+        return tetrahedralize_surface(V, F, edge_length_fac=config.edge_length_fac, epsilon=config.epsilon, seed=seed)
     sizing = object_sizing(pieces, V.min(0), V.max(0), edge_length_fac=config.edge_length_fac,
                            hull_scale=config.hull_scale)
-    return tetrahedralize_surface(V, F, edge_length_abs=float(sizing[2].max()), epsilon=config.epsilon, sizing=sizing)
+    return tetrahedralize_surface(V, F, edge_length_abs=float(sizing[2].max()), epsilon=config.epsilon, sizing=sizing,
+                                  seed=seed)

@@ -210,7 +210,7 @@ def init_model_from_surfels(gaussians_ply, dataset, tet_config, config: Topology
         f"(edge length {tet_config.edge_length_fac} x bbox diagonal"
         f"{f' of each of the {len(pieces)} objects' if pieces else ''})", progress)
     g = load_gaussians_ply(gaussians_ply)
-    mesh = initial_tetmesh(g["means"], g["opacities"], tet_config, pieces=pieces)
+    mesh = initial_tetmesh(g["means"], g["opacities"], tet_config, pieces=pieces, seed=seed)
     say(f"initial tet mesh: {mesh.num_tets} tets, {mesh.num_vertices} vertices", progress)
     maps = None
     if config.phi_init == "depth_hull":
@@ -538,16 +538,9 @@ def _guarded_by_evidence(mesh: TetMesh, drop, evidence, alpha, plain: tuple, inf
         return None
     alt: dict = {}
     _, ids, n, removed, n_kept = _guarded_keep(mesh, drop & ~blind, alt, config.min_component)
-    guard = _topology_guard(mesh, plain, (ids, removed), config)
+    guard = _topology_guard(mesh, plain, (ids, removed), config, genus_bound, info)
     if guard is None:
         return None
-    if guard == "kept_for_genus" and genus_bound is not None:
-        g_seen = TetMesh(mesh.vertices, mesh.tets[ids], validate=False).genus()
-        if g_seen > TetMesh(mesh.vertices, mesh.tets[plain[0]], validate=False).genus():
-            bound = genus_bound() if callable(genus_bound) else int(genus_bound)
-            if g_seen > bound:
-                info["genus_over_bound"] = int(g_seen)
-                return None
     kept = np.zeros(mesh.num_tets, dtype=bool)
     kept[ids] = True
     kept, _ = thin_simple(mesh.vertices, mesh.tets, kept, blind, alpha)
@@ -556,7 +549,8 @@ def _guarded_by_evidence(mesh: TetMesh, drop, evidence, alpha, plain: tuple, inf
     return np.flatnonzero(kept), n, removed, n_kept
 
 
-def _topology_guard(mesh: TetMesh, plain: tuple, seen: tuple, config: TopologyConfig) -> str | None:
+def _topology_guard(mesh: TetMesh, plain: tuple, seen: tuple, config: TopologyConfig, genus_bound=None,
+                    info: dict | None = None) -> str | None:
     """Which guard a prune trips, as its report key, or None: the plain prune (``plain``:
     kept tet ids, tets removed with cut-off pieces) against the one that prunes only tets
     some view shows to be empty (``seen``, the same pair).
@@ -565,13 +559,22 @@ def _topology_guard(mesh: TetMesh, plain: tuple, seen: tuple, config: TopologyCo
     more than that fraction of the tets it keeps, and the images keep more of them.
     ``"kept_for_genus"`` (``config.genus_guard``): the two leave different genera, so tets
     no view shows empty decide a tunnel or a handle (the plain prune's genus may even equal
-    the one before: three handles cut while three tunnels open)."""
+    the one before: three handles cut while three tunnels open); unless the second's genus
+    exceeds both the first's and ``genus_bound`` (:func:`_guarded_by_evidence`), which then
+    goes to ``info["genus_over_bound"]``."""
     if config.split_guard is not None and plain[1] > config.split_guard * len(plain[0]) and seen[1] < plain[1]:
         return "kept_for_split"
     if config.genus_guard:
         g_plain = TetMesh(mesh.vertices, mesh.tets[plain[0]], validate=False).genus()
-        if g_plain != TetMesh(mesh.vertices, mesh.tets[seen[0]], validate=False).genus():
-            return "kept_for_genus"
+        g_seen = TetMesh(mesh.vertices, mesh.tets[seen[0]], validate=False).genus()
+        if g_plain == g_seen:
+            return None
+        if genus_bound is not None and g_seen > g_plain:
+            if g_seen > (genus_bound() if callable(genus_bound) else int(genus_bound)):
+                if info is not None:
+                    info["genus_over_bound"] = int(g_seen)
+                return None
+        return "kept_for_genus"
     return None
 
 
