@@ -59,6 +59,24 @@ def _open_checked(path: Path, expect):
     return im
 
 
+def _decode(path: Path, shape, expect, pick):
+    """Open ``path`` (size checked against ``expect``), normalise its mode and return
+    ``pick(im, shape)``; 16-bit images become one band scaled by 65535 instead. A
+    ``shape`` equal to the file's size is dropped (no resize)."""
+    try:
+        with _open_checked(path, expect) as im:
+            if shape is not None and (im.size[1], im.size[0]) == tuple(shape):
+                shape = None
+            im.load()
+            if im.mode in _SIXTEEN_BIT:
+                return _bands_to_array([im.convert("I").convert("F")], shape, 65535.0)
+            if im.mode not in ("L", "LA", "RGB", "RGBA"):
+                im = im.convert("RGBA" if "A" in im.getbands() else "RGB")
+            return pick(im, shape)
+    except OSError as e:
+        raise DatasetError(f"{path}: cannot read image ({e})") from None
+
+
 def read_image(path: Path, *, shape: tuple[int, int] | None = None, expect=None) -> np.ndarray:
     """(H, W[, C]) float32 in [0, 1]; 16-bit images are scaled by 65535.
 
@@ -68,21 +86,14 @@ def read_image(path: Path, *, shape: tuple[int, int] | None = None, expect=None)
         expect: ``(other file, (H, W))``: the size the file must have (checked before
             decoding; the error names both files).
     """
-    try:
-        with _open_checked(path, expect) as im:
-            if shape is not None and (im.size[1], im.size[0]) == tuple(shape):
-                shape = None
-            im.load()
-            if im.mode in _SIXTEEN_BIT:
-                return _bands_to_array([im.convert("I").convert("F")], shape, 65535.0)
-            if im.mode not in ("L", "LA", "RGB", "RGBA"):
-                im = im.convert("RGBA" if "A" in im.getbands() else "RGB")
-            if shape is None:
-                a = np.asarray(im).astype(np.float32)  # one float copy, divided in place
-                return np.divide(a, 255.0, out=a)
-            return _bands_to_array(im.split(), shape, 255.0)
-    except OSError as e:
-        raise DatasetError(f"{path}: cannot read image ({e})") from None
+
+    def pick(im, shape):
+        if shape is None:
+            a = np.asarray(im).astype(np.float32)  # one float copy, divided in place
+            return np.divide(a, 255.0, out=a)
+        return _bands_to_array(im.split(), shape, 255.0)
+
+    return _decode(path, shape, expect, pick)
 
 
 def read_mask(path: Path, *, shape: tuple[int, int] | None = None, expect=None) -> np.ndarray:
@@ -91,20 +102,12 @@ def read_mask(path: Path, *, shape: tuple[int, int] | None = None, expect=None) 
     65535. ``shape`` and ``expect`` as in :func:`read_image`."""
     from PIL import ImageChops
 
-    try:
-        with _open_checked(path, expect) as im:
-            if shape is not None and (im.size[1], im.size[0]) == tuple(shape):
-                shape = None
-            im.load()
-            if im.mode in _SIXTEEN_BIT:
-                return _bands_to_array([im.convert("I").convert("F")], shape, 65535.0)
-            if im.mode not in ("L", "LA", "RGB", "RGBA"):
-                im = im.convert("RGBA" if "A" in im.getbands() else "RGB")
-            bands = im.split()
-            band = bands[0] if len(bands) < 3 else ImageChops.lighter(ImageChops.lighter(bands[0], bands[1]), bands[2])
-            return _bands_to_array([band], shape, 255.0)
-    except OSError as e:
-        raise DatasetError(f"{path}: cannot read image ({e})") from None
+    def pick(im, shape):
+        bands = im.split()
+        band = bands[0] if len(bands) < 3 else ImageChops.lighter(ImageChops.lighter(bands[0], bands[1]), bands[2])
+        return _bands_to_array([band], shape, 255.0)
+
+    return _decode(path, shape, expect, pick)
 
 
 def find_image(root: Path, file_path, where: str) -> Path:
