@@ -1001,6 +1001,21 @@ class PolishConfig:
             dihedral plate 9.5° -> 10.3° (now at §7b's target), spot 9.0° -> 9.9°, dented box
             6.4° -> 6.7°, star 5.5° -> 5.9°; F@0.005 moved by at most 0.0006 and normal
             consistency by at most 0.0001 on every object.
+        w_prior: weight of the normal-map prior in both fits, when the dataset has normal
+            maps: the mean ``1 - cos`` between the boundary's rendered normals and the map
+            over the pixels both cover, added to each view's mask term (0: masks alone).
+            Finishing the quality suite's seed-0 runs again from their checkpoints (fast,
+            128², 0 -> 0.02; Chamfer-L1 / F@0.005 / normal consistency / Hausdorff): bob
+            0.002233 -> 0.002200 / 0.9889 -> 0.9897 / 0.9922 -> 0.9931 (hull 0.9927) /
+            0.0083 -> 0.0081; spot 0.002516 -> 0.002474 / 0.9656 -> 0.9690 / 0.9833 ->
+            0.9844 / 0.0152 -> 0.0148; fandisk 0.00451 -> 0.00420 / 0.762 -> 0.783 / 0.9699
+            -> 0.9731 / 0.0450 -> 0.0411; mug 0.02190 -> 0.02174 / 0.568 -> 0.594 / 0.9632
+            -> 0.9660 / 0.2748 -> 0.2733 (hull 0.2746); bowl, plate likewise all better
+            (plate's IoU -0.001); star neutral (F@0.005 0.9022 -> 0.9005, normal consistency
+            0.9837 -> 0.9853); the dented box better on all but F@0.005, 0.588 -> 0.558
+            (its flat faces move by a fraction of τ). Normal consistency rose on all eight.
+            At 0.05 the gains were larger on five objects, but the dented box's F@0.005
+            fell to 0.518 and the star's to 0.889; at 0.2 spot's fell to 0.959.
     """
 
     enabled: bool = True
@@ -1015,13 +1030,14 @@ class PolishConfig:
     after_steps: int = 40
     after_volume_fraction: float = 0.9
     after_angle_floor: float | None = 10.0
+    w_prior: float = 0.02
 
     def __post_init__(self):
         for name in ("steps", "views", "check_views", "after_steps"):
             v, lo = getattr(self, name), 0 if name.endswith("steps") else 1
             if isinstance(v, bool) or not (isinstance(v, int) and v >= lo):
                 raise ValueError(f"PolishConfig.{name} must be an integer >= {lo}, got {v!r}")
-        for name in ("lr", "smooth", "pit_depth"):
+        for name in ("lr", "smooth", "pit_depth", "w_prior"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"PolishConfig.{name} must be a finite number >= 0, got {v!r}")

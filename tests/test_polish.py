@@ -107,7 +107,8 @@ def test_keep_angles_puts_back_exactly_the_moves_that_cost_the_floor(grown_spher
                                  dict(smooth=-1.0), dict(min_volume_fraction=1.0), dict(check_views=0),
                                  dict(pit_depth=-0.1), dict(pit_floor=1.0), dict(after_steps=-1),
                                  dict(after_volume_fraction=1.0), dict(after_angle_floor=-1.0),
-                                 dict(after_angle_floor=90.0), dict(after_angle_floor=True)])
+                                 dict(after_angle_floor=90.0), dict(after_angle_floor=True),
+                                 dict(w_prior=-0.1), dict(w_prior=float("inf"))])
 def test_polish_settings_are_checked(bad):
     with pytest.raises(ValueError, match="PolishConfig"):
         PolishConfig(**bad)
@@ -154,3 +155,39 @@ def test_a_one_tet_pit_is_put_back_on_its_rim(z, flattened):
     else:
         np.testing.assert_array_equal(V, mesh.vertices)
     np.testing.assert_array_equal(V[:4], mesh.vertices[:4])
+
+
+def test_polish_normal_prior_adds_the_mean_cosine_error_of_a_numpy_reference(grown_sphere):
+    from dataclasses import replace
+
+    import torch
+
+    from holowarp.ops import rasterize_mesh
+    from holowarp.render_gt import GTRenderer
+    from holowarp.stages.polish import _boundary_graph, _view_loss
+
+    ds, mesh = grown_sphere
+    r = GTRenderer(*(lambda s: (s.vertices, s.faces))(trimesh.creation.icosphere(subdivisions=4, radius=RADIUS)))
+    normals = np.stack([r.render(vm, k, ds.width, ds.height)["normal"] for vm, k in zip(ds.viewmats, ds.K)])
+    with_n = replace(ds, normals=normals.astype(np.float32))
+    ids, lf, _, _ = _boundary_graph(mesh)
+    rng = np.random.default_rng()
+    xb = torch.tensor(np.asarray(mesh.vertices)[ids] * rng.uniform(0.97, 1.03, (len(ids), 1)), dtype=torch.float32)
+    faces = torch.tensor(lf, dtype=torch.int32)
+    v, w = int(rng.integers(len(ds.viewmats))), float(rng.uniform(0.2, 2.0))
+    mask, prior = torch.as_tensor(ds.masks[v]), torch.as_tensor(with_n.normals[v])
+    got = float(_view_loss(xb, faces, with_n, v, mask, prior, w))
+    out = rasterize_mesh(xb, faces, ds.viewmats[v], ds.K[v], ds.width, ds.height)
+    a, n = (out[k].detach().numpy().astype(np.float64) for k in ("alpha", "normal"))
+    p = with_n.normals[v].astype(np.float64)
+    sel = (a > 0.5) & (np.linalg.norm(p, axis=-1) > 0.5)
+    cos = (n * p).sum(-1)[sel] / (np.linalg.norm(n, axis=-1)[sel] * np.linalg.norm(p, axis=-1)[sel])
+    ref = np.abs(a - ds.masks[v]).mean() + w * np.mean(1.0 - cos)
+    assert sel.sum() > 100 and 0.0 < np.mean(1.0 - cos) < 0.2
+    assert got == pytest.approx(ref, rel=1e-4)
+    assert float(_view_loss(xb, faces, with_n, v, mask, None, w)) == pytest.approx(np.abs(a - ds.masks[v]).mean(), rel=1e-5)
+    # A prior weight changes the polish only where the dataset has normal maps.
+    cfg = PolishConfig(steps=6, views=4, lr=0.03, min_volume_fraction=0.5)
+    V0, _ = polish_silhouettes(mesh, ds, cfg, seed=2)
+    assert np.array_equal(polish_silhouettes(mesh, ds, replace(cfg, w_prior=1.0), seed=2)[0], V0)
+    assert not np.array_equal(polish_silhouettes(mesh, with_n, replace(cfg, w_prior=1.0), seed=2)[0], V0)

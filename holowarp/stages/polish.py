@@ -6,16 +6,20 @@ normals and the regularisers, so the boundary ends a fraction of a pixel off whe
 silhouettes pin it: on the quality suite (128², fast preset) the surface sat 0.001-0.002
 outside the ground truth on the silhouette-visible parts, where the visual hull sits within
 0.001, and that spread alone kept F@0.005 under the hull's. This stage fits the boundary
-vertices to the masks alone, averaging ``PolishConfig.views`` training views per step,
-with Adam and a cosine-decayed step:
+vertices to the masks (and the normal maps, where the dataset has them), averaging
+``PolishConfig.views`` training views per step, with Adam and a cosine-decayed step:
 
-    L = mean_views mean_pixels |alpha - mask| + smooth * mean_edges |d_i - d_j|^2 / h^2
+    L = mean_views (mean_pixels |alpha - mask| + w_prior * mean_covered (1 - cos(n, n_map)))
+        + smooth * mean_edges |d_i - d_j|^2 / h^2
 
 ``alpha`` is the boundary's anti-aliased silhouette (:func:`holowarp.ops.rasterize_mesh`),
 ``d`` the boundary vertices' displacements from their start, ``h`` the mean boundary edge.
-The second term keeps the displacement field smooth, so the correction moves patches, not
-single vertices, and the surface's normals survive. Only the masks enter: a part of the
-surface no silhouette sees (a cavity) has no gradient and stays where the main loop put it.
+The last term keeps the displacement field smooth, so the correction moves patches, not
+single vertices, and the surface's normals survive. The prior term, only where the dataset
+has normal maps (``n`` the boundary's rendered normals, ``n_map`` the map, over the pixels
+both cover), turns the facets the masks leave alone towards the photographed orientation
+(``PolishConfig.w_prior`` has the measurements); without normal maps only the masks enter,
+and a part of the surface no silhouette sees (a cavity) stays where the main loop put it.
 Interior vertices do not move. After every step, vertices of tets that fell below
 ``min_volume_fraction`` (0.8) of their volume at the start are put back
 (:func:`holowarp.stages.geometry.revert_inverting_moves`), so no tet inverts and the element
@@ -264,7 +268,8 @@ class _Fit:
             opt.zero_grad(set_to_none=True)
             xb = xb0 + d
             views = np.random.default_rng([seed, 7, step]).choice(train, k, replace=False)
-            loss = sum(_view_loss(xb, self.faces, dataset, int(v), masks[int(v)]) for v in views) / k
+            loss = sum(_view_loss(xb, self.faces, dataset, int(v), masks[int(v)], masks.normal(int(v)) if config.w_prior > 0 else None,
+                                  config.w_prior) for v in views) / k
             if config.smooth > 0:
                 dd = d[e[:, 0]] - d[e[:, 1]]
                 loss = loss + config.smooth * (dd * dd).sum(dim=1).mean() / (h * h)
@@ -279,7 +284,8 @@ class _Fit:
 
 
 class _Masks:
-    """``masks[v]``: view ``v``'s mask as a float32 (H, W) tensor on ``device``."""
+    """``masks[v]``: view ``v``'s mask as a float32 (H, W) tensor on ``device``;
+    ``masks.normal(v)`` its normal map (H, W, 3), None when the dataset has none."""
 
     def __init__(self, dataset, device):
         self.dataset, self.device = dataset, device
@@ -287,9 +293,23 @@ class _Masks:
     def __getitem__(self, v) -> torch.Tensor:
         return torch.as_tensor(np.asarray(self.dataset.masks[int(v)]), dtype=torch.float32, device=self.device)
 
+    def normal(self, v) -> torch.Tensor | None:
+        if self.dataset.normals is None:
+            return None
+        return torch.as_tensor(np.asarray(self.dataset.normals[int(v)]), dtype=torch.float32, device=self.device)
 
-def _view_loss(xb, faces, dataset, v: int, mask) -> torch.Tensor:
+
+def _view_loss(xb, faces, dataset, v: int, mask, prior=None, w_prior: float = 0.0) -> torch.Tensor:
+    """``mean |alpha - mask|`` of view ``v``, plus ``w_prior`` times the mean ``1 - cos``
+    between the rendered normals and the normal map ``prior`` (H, W, 3) over the pixels the
+    boundary covers (alpha > 0.5) where the map holds a normal (when given and w_prior > 0)."""
+    from holowarp.losses import prior_error
     from holowarp.ops import rasterize_mesh
 
-    a = rasterize_mesh(xb, faces, dataset.viewmats[v], dataset.K[v], dataset.width, dataset.height)["alpha"]
-    return (a - mask).abs().mean()
+    out = rasterize_mesh(xb, faces, dataset.viewmats[v], dataset.K[v], dataset.width, dataset.height)
+    loss = (out["alpha"] - mask).abs().mean()
+    if prior is not None and w_prior > 0:
+        err, has = prior_error(prior, out["normal"])
+        sel = ((out["alpha"] > 0.5) & has).to(err.dtype)
+        loss = loss + w_prior * (err * sel).sum() / sel.sum().clamp_min(1.0)
+    return loss
