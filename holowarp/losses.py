@@ -28,6 +28,7 @@ __all__ = [
     "normal_consistency_loss",
     "distortion_loss",
     "prior_error",
+    "covered_prior_loss",
     "ranked_loss",
     "ranked_normal_loss",
 ]
@@ -132,6 +133,16 @@ def prior_error(prior: torch.Tensor, *normals: torch.Tensor) -> tuple[torch.Tens
         e = 1.0 - (prior * n).sum(-1) / (length * n.norm(dim=-1)).clamp_min(1e-12)
         err = e if err is None else err + e
     return err, length > 0.5
+
+
+def covered_prior_loss(prior: torch.Tensor, normal: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """Mean ``1 - cos`` between a rendered ``normal`` map (H, W, 3) and the normal map
+    ``prior`` (H, W, 3) over the pixels the render covers (``alpha`` (H, W) > 0.5) where the
+    prior holds a normal; 0 where there is no such pixel. Written without a boolean gather
+    (a data-dependent shape is a host sync); the mesh blocks and the polish use it."""
+    err, has = prior_error(prior, normal)
+    sel = ((alpha > 0.5) & has).to(err.dtype)
+    return (err * sel).sum() / sel.sum().clamp_min(1.0)
 
 
 def distortion_loss(distortion: torch.Tensor, *, weight: torch.Tensor | None = None) -> torch.Tensor:

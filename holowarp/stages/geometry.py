@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from holowarp.config import GeometryConfig
-from holowarp.losses import prior_error
+from holowarp.losses import covered_prior_loss
 from holowarp.progress import LossBuffer
 from holowarp.tetgs import TetGaussians
 
@@ -175,10 +175,7 @@ class GeometryBlock:
         ``view`` where both cover the pixel; None without normal maps or with ``w_prior`` 0."""
         if self.normals is None or self.cfg.w_prior <= 0:
             return None
-        prior = self.normals[view]
-        err, has = prior_error(prior, out["normal"])
-        sel = ((out["alpha"] > 0.5) & has).to(prior.dtype)
-        return (err * sel).sum() / sel.sum().clamp_min(1.0)
+        return covered_prior_loss(self.normals[view], out["normal"], out["alpha"])
 
     def view_of(self, t: int, seed: int) -> int:
         """The training view of global mesh iteration ``t``: drawn from ``default_rng([seed, 1, t])``."""

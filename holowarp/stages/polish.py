@@ -268,8 +268,9 @@ class _Fit:
             opt.zero_grad(set_to_none=True)
             xb = xb0 + d
             views = np.random.default_rng([seed, 7, step]).choice(train, k, replace=False)
-            loss = sum(_view_loss(xb, self.faces, dataset, int(v), masks[int(v)], masks.normal(int(v)) if config.w_prior > 0 else None,
-                                  config.w_prior) for v in views) / k
+            loss = sum(_view_loss(xb, self.faces, dataset, int(v), masks[int(v)],
+                                  masks.normal(int(v)) if config.w_prior > 0 else None, config.w_prior)
+                       for v in views) / k
             if config.smooth > 0:
                 dd = d[e[:, 0]] - d[e[:, 1]]
                 loss = loss + config.smooth * (dd * dd).sum(dim=1).mean() / (h * h)
@@ -303,13 +304,11 @@ def _view_loss(xb, faces, dataset, v: int, mask, prior=None, w_prior: float = 0.
     """``mean |alpha - mask|`` of view ``v``, plus ``w_prior`` times the mean ``1 - cos``
     between the rendered normals and the normal map ``prior`` (H, W, 3) over the pixels the
     boundary covers (alpha > 0.5) where the map holds a normal (when given and w_prior > 0)."""
-    from holowarp.losses import prior_error
+    from holowarp.losses import covered_prior_loss
     from holowarp.ops import rasterize_mesh
 
     out = rasterize_mesh(xb, faces, dataset.viewmats[v], dataset.K[v], dataset.width, dataset.height)
     loss = (out["alpha"] - mask).abs().mean()
     if prior is not None and w_prior > 0:
-        err, has = prior_error(prior, out["normal"])
-        sel = ((out["alpha"] > 0.5) & has).to(err.dtype)
-        loss = loss + w_prior * (err * sel).sum() / sel.sum().clamp_min(1.0)
+        loss = loss + w_prior * covered_prior_loss(prior, out["normal"], out["alpha"])
     return loss
