@@ -191,3 +191,21 @@ def test_polish_normal_prior_adds_the_mean_cosine_error_of_a_numpy_reference(gro
     V0, _ = polish_silhouettes(mesh, ds, cfg, seed=2)
     assert np.array_equal(polish_silhouettes(mesh, ds, replace(cfg, w_prior=1.0), seed=2)[0], V0)
     assert not np.array_equal(polish_silhouettes(mesh, with_n, replace(cfg, w_prior=1.0), seed=2)[0], V0)
+
+
+def test_the_quality_bench_checks_the_element_angles_too():
+    from holowarp.bench.quality import _ratios, _targets
+
+    rng = np.random.default_rng()
+    side = lambda worst, mean: {"components": 1, "genus": 1, "boundary_shells": 1, "manifold": True,  # noqa: E731
+                                "inverted_ratio": 0.0, "volume_iou": 0.9, "f_score_005": 0.9,
+                                "normal_consistency": 0.95, "hausdorff": 0.02, "chamfer_l1": 0.003,
+                                "chamfer_l1_floor": 0.002, "concave_chamfer": 0.004,
+                                "min_dihedral_worst": worst, "min_dihedral_mean": mean}
+    for worst, mean in ((rng.uniform(10.0, 20.0), rng.uniform(40.0, 55.0)), (rng.uniform(0.5, 9.99), 47.0),
+                        (12.0, rng.uniform(30.0, 39.9))):
+        row = {"object": "bob", "concave": False, "genus_expected": 1, "holowarp": side(worst, mean),
+               "hull": side(10.0, 45.0)}
+        t = _targets(row, _ratios(row))
+        assert t["worst_dihedral_ge_10"] == (worst >= 10.0) and t["mean_dihedral_ge_40"] == (mean >= 40.0)
+        assert t["exact_genus"] and t["normal_consistency_ge_hull"]

@@ -5,7 +5,8 @@ For every object: synthesise 120 views at 128² (method.md §2), build the visua
 (carving, marching cubes, fTetWild) and reconstruct with the fast preset, then evaluate both
 against the ground truth (method.md §9, plus ``f_score_005``, ``chamfer_l1_floor`` and
 ``concave_chamfer``) and print every metric of both, their ratios (holowarp / hull) and the
-targets' pass/fail. The objects are the procedural shapes of :mod:`holowarp.shapes` (bowl,
+targets' pass/fail (issue 12's, and issue 13's angles: ``worst_dihedral_ge_10``,
+``mean_dihedral_ge_40``). The objects are the procedural shapes of :mod:`holowarp.shapes` (bowl,
 mug, dented box, star, plate) and the shared meshes spot, bob and fandisk.
 
 Work goes to ``--work DIR`` (default ``runs/quality``); every step is skipped when its output
@@ -164,7 +165,9 @@ def _ratios(row: dict) -> dict:
 
 
 def _targets(row: dict, ratios: dict) -> dict:
-    """Issue 12's targets for one object: True/False each."""
+    """Issue 12's targets for one object, and issue 13's element-quality targets (worst
+    minimum dihedral >= 10°, mean >= 40°), which any change upstream of §7b can undo: True/False
+    each."""
     h, v = row["holowarp"], row["hull"]
     t = {
         "one_component": h["components"] == 1,
@@ -176,6 +179,8 @@ def _targets(row: dict, ratios: dict) -> dict:
         "f_score_005_ge_hull": h["f_score_005"] >= v["f_score_005"],
         "normal_consistency_ge_hull": h["normal_consistency"] >= v["normal_consistency"],
         "hausdorff_le_hull": h["hausdorff"] <= v["hausdorff"],
+        "worst_dihedral_ge_10": h["min_dihedral_worst"] >= 10.0,
+        "mean_dihedral_ge_40": h["min_dihedral_mean"] >= 40.0,
     }
     if row["concave"]:
         t["concave_chamfer_le_0.6_hull"] = ratios.get("concave_chamfer", math.inf) <= 0.6
