@@ -13,6 +13,7 @@ can do so (its output is checkpointed before use, so a resume never depends on t
 from __future__ import annotations
 
 import json
+import queue
 import time
 from pathlib import Path
 
@@ -96,12 +97,20 @@ def reconstruct_alone(dataset_path, out_dir, *, config: ReconConfig, device: str
     child = ctx.Process(target=_reconstruct_child, args=(str(dataset_path), str(out_dir), config, device, resume,
                                                          progress, torch.get_num_threads(), errors))
     child.start()
+    # Read the child's error while it runs: it waits for its message to leave the pipe before
+    # it exits, so joining first would hang on a message larger than the pipe's buffer.
+    data = None
+    while data is None and (child.is_alive() or not errors.empty()):
+        try:
+            data = errors.get(timeout=1.0)
+        except queue.Empty:
+            pass
     child.join()
     if child.exitcode != 0:
         import pickle
 
         try:
-            err = pickle.loads(errors.get(timeout=5))
+            err = pickle.loads(data)
         except Exception:  # noqa: BLE001 -- killed before it could say why
             err = RuntimeError(f"reconstructing {dataset_path} into {out_dir}: the process ended with status "
                                f"{child.exitcode}")
