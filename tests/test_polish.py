@@ -80,8 +80,11 @@ def test_keep_angles_puts_back_exactly_the_moves_that_cost_the_floor(grown_spher
     V0 = np.asarray(mesh.vertices)
     b = np.unique(mesh.boundary_faces())
     h = float(np.median(np.linalg.norm(V0[mesh.edges()[:, 0]] - V0[mesh.edges()[:, 1]], axis=1)))
+    # Fewer than half the boundary vertices move, so "not every move goes back" below is
+    # certain; moving all of them by 0.25 h put more than half back on 8% of the draws.
     V1 = V0.copy()
-    V1[b] += rng.normal(scale=0.25 * h, size=(len(b), 3))
+    moved = rng.choice(b, (len(b) - 1) // 2, replace=False)
+    V1[moved] += rng.normal(scale=0.35 * h, size=(len(moved), 3))
     worst0 = min_dihedral_deg(V0, mesh.tets).min()
     floor = min(10.0, worst0)
     assert (min_dihedral_deg(V1, mesh.tets) < floor).sum() > 5, rng_seed  # the moves do cost angles
