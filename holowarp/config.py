@@ -700,7 +700,9 @@ class CleanupConfig:
         max_repair_rounds: cap on manifold-repair rounds (each round fixes every defect found).
         blunt_wedge_deg: boundary edges where the solid's wedge angle is below this are
             knife ridges, opened by umbrella steps of their vertices
-            (:func:`holowarp.stages.cleanup.blunt_ridges`); 0 turns the step off. 30: a
+            (:func:`holowarp.stages.cleanup.blunt_ridges`), and a dropped cap whose removal
+            leaves such a ridge (or a slit, over 360° minus it) is put back; 0 turns both
+            off. 30: a
             ridge that sharp is cut by tets of at most 15° at it (two per ridge) or one of
             under 30°, and §7b may not move a feature crease to open it.
         blunt_step: fraction of the way to the boundary neighbours' centroid per round.

@@ -7,7 +7,7 @@ import pytest
 
 from holowarp.primitives import box_tetmesh
 from holowarp.manifold import fill_sealed, repair_manifold
-from holowarp.stages.cleanup import cleanup
+from holowarp.stages.cleanup import cleanup, ridge_wedges
 from holowarp.config import CleanupConfig, TetInitConfig
 from holowarp.stages.tet_init import HullError, scaled_hull
 from holowarp.tetmesh import TetMesh
@@ -340,3 +340,25 @@ def test_blunting_moves_no_vertex_of_a_tet_it_would_leave_below_min_volume():
     assert info["vertices_moved"] > 0
     still, info = blunt_ridges(mesh, CleanupConfig(), min_volume=big)
     assert info["vertices_moved"] == 0 and info["rounds"] == 0 and np.array_equal(still.vertices, mesh.vertices)
+
+
+def test_a_cap_whose_removal_would_leave_a_knife_ridge_is_put_back():
+    # An open fan of a 28-degree sector and a 3-degree one beside it: the thin sector's tets
+    # are caps, but without them the fan's edge would be a knife ridge (wedge 28 < 30
+    # degrees), which every tet there would have to cut at less than 28 degrees. (The flap
+    # rule is off: one of the thin tets is also a flap, which goes whatever it leaves.)
+    mesh, owner = _edge_fan([(0, 28), (28, 31)])
+    q = mesh.quality()["min_dihedral_deg"]
+    assert np.all(q[owner == 1] < CleanupConfig().cap_dihedral_deg) and np.all(q[owner == 0] > 5.0)
+    edges, wedge = ridge_wedges(mesh)
+    axis = np.flatnonzero((np.sort(edges, axis=1) == [0, 1]).all(axis=1))
+    assert np.isclose(wedge[axis], 31.0).all() and wedge.min() >= 30.0
+
+    clean, kept, info = cleanup(mesh, CleanupConfig(flap_dihedral_deg=0.0))
+    # The cap at the edge is put back; the two others go, as they leave no ridge behind.
+    assert info["caps_restored_for_folds"] == 1 and info["dropped_caps"] == 2
+    assert 3 in kept and info["blunt"]["sharp_edges_before"] == 0 and ridge_wedges(clean)[1].min() >= 30.0
+    # Without the knife-ridge rule (blunting off) the caps go and the ridge sharpens.
+    clean, kept, info = cleanup(mesh, CleanupConfig(flap_dihedral_deg=0.0, blunt_wedge_deg=0.0))
+    assert info["dropped_caps"] == int((owner == 1).sum()) and info["caps_restored_for_folds"] == 0
+    assert ridge_wedges(clean)[1].min() < 28.5
