@@ -286,18 +286,25 @@ class _Fit:
 
 class _Masks:
     """``masks[v]``: view ``v``'s mask as a float32 (H, W) tensor on ``device``;
-    ``masks.normal(v)`` its normal map (H, W, 3), None when the dataset has none."""
+    ``masks.normal(v)`` its normal map (H, W, 3), None when the dataset has none. Each view
+    goes to the device once (the fits draw every view many times; on CUDA each draw would
+    otherwise be an upload)."""
 
     def __init__(self, dataset, device):
         self.dataset, self.device = dataset, device
+        self._masks: dict[int, torch.Tensor] = {}
+        self._normals: dict[int, torch.Tensor] = {}
 
     def __getitem__(self, v) -> torch.Tensor:
-        return torch.as_tensor(np.asarray(self.dataset.masks[int(v)]), dtype=torch.float32, device=self.device)
+        return self._get(self._masks, self.dataset.masks, int(v))
 
     def normal(self, v) -> torch.Tensor | None:
-        if self.dataset.normals is None:
-            return None
-        return torch.as_tensor(np.asarray(self.dataset.normals[int(v)]), dtype=torch.float32, device=self.device)
+        return None if self.dataset.normals is None else self._get(self._normals, self.dataset.normals, int(v))
+
+    def _get(self, cache: dict, images, v: int) -> torch.Tensor:
+        if v not in cache:
+            cache[v] = torch.as_tensor(np.asarray(images[v]), dtype=torch.float32, device=self.device)
+        return cache[v]
 
 
 def _view_loss(xb, faces, dataset, v: int, mask, prior=None, w_prior: float = 0.0) -> torch.Tensor:
