@@ -1002,7 +1002,9 @@ class PolishConfig:
             against 10): 3-4 vertices put back on four objects, none on the other four; worst
             dihedral plate 9.5° -> 10.3° (now at §7b's target), spot 9.0° -> 9.9°, dented box
             6.4° -> 6.7°, star 5.5° -> 5.9°; F@0.005 moved by at most 0.0006 and normal
-            consistency by at most 0.0001 on every object.
+            consistency by at most 0.0001 on every object. Either way (None too), the moves
+            that wrap a boundary edge's tets past a full turn go back as well
+            (:func:`holowarp.stages.polish.keep_unfolded`, also run after the first fit).
         w_prior: weight of the normal-map prior in both fits, when the dataset has normal
             maps: the mean ``1 - cos`` between the boundary's rendered normals and the map
             over the pixels both cover, added to each view's mask term (0: masks alone).

@@ -36,6 +36,7 @@ _ROWS = [
     ("manifold", "manifold", "boundary"),
     ("genus", "genus", "boundary"),
     ("boundary_shells", "boundary shells", "1 = no sealed void"),
+    ("overlapping_edges", "overlapping edges", "0 = no self-overlap"),
     ("tets", "tets", ""),
     ("inverted_ratio", "inverted ratio", "signed volume <= 0"),
     ("min_dihedral_mean", "min dihedral mean", "degrees"),

@@ -4,7 +4,9 @@ path of a run (:func:`finish_run` runs cleanup, export, previews and metrics, th
 
 Keys (a contract other tools read): ``preset``, ``device``, ``dataset``, ``resolution``,
 ``ablations``, ``seconds_total``, ``stages``, ``tets_initial``, ``tets_final``,
-``vertices_final``, ``components``, ``manifold``, ``genus``, ``inverted_before_cleanup``,
+``vertices_final``, ``components``, ``manifold``, ``genus``, ``boundary_shells``,
+``overlapping_edges`` (:meth:`holowarp.tetmesh.TetMesh.overlapping_edges`: boundary edges
+whose tets overlap in space, 0 for an embedded mesh), ``inverted_before_cleanup``,
 ``flipped``, ``dropped``, ``cleanup``, ``inverted_ratio``, ``min_dihedral_mean``,
 ``aspect_ratio_mean``, ``prunes``, ``raw_components_max``, ``geometry_blocks``, ``stage0``,
 ``psnr_test``, ``ssim_test``, ``test_views`` (the views those are measured on),
@@ -15,9 +17,11 @@ with ``mesh_see_through_covered``, the share of the masks' see-through pixels th
 closes, and ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews``, ``config``,
 ``improve`` (the element improvement's section, :func:`holowarp.stages.improve.improve`;
 ``null`` when ``config.improve.enabled`` is off), ``polish`` (the silhouette polish's section,
-:func:`holowarp.stages.polish.polish_silhouettes` with ``pits_lifted`` and ``after``, the
+:func:`holowarp.stages.polish.polish_silhouettes` with ``pits_lifted``, ``overlap_put_back``
+(the vertices :func:`holowarp.stages.polish.keep_unfolded` put back) and ``after``, the
 second fit's own section after §7b with ``angle_put_back``, the vertices
-:func:`holowarp.stages.polish.keep_angles` put back; ``null`` when off), ``metrics``
+:func:`holowarp.stages.polish.keep_angles` put back, overlaps included; ``null`` when off),
+``metrics``
 (method.md §9) when the dataset has a ground-truth mesh, and ``scene`` (method.md §11,
 :func:`scene_objects`) when the run is scene level. The mesh counts and qualities are those
 of the final mesh (after improvement).
@@ -81,6 +85,7 @@ def build_report(*, config, device, data_dir, dataset, state, clean, cleanup_inf
         "manifold": bool(man["manifold"]),
         "genus": clean.genus(),
         "boundary_shells": clean.boundary_shells(),
+        "overlapping_edges": clean.overlapping_edges(),
         "inverted_before_cleanup": cleanup_info["inverted_before_cleanup"],
         "flipped": cleanup_info["flipped"],
         "dropped": cleanup_info["dropped"],
@@ -268,11 +273,13 @@ def _polish(model, clean, dataset, config, device, state):
     (mesh, report section or None when disabled)."""
     if not config.polish.enabled:
         return clean, None
-    from holowarp.stages.polish import lift_pits, polish_silhouettes
+    from holowarp.stages.polish import keep_unfolded, lift_pits, polish_silhouettes
 
     t0 = time.perf_counter()
     V, pits = lift_pits(clean, config.polish)
-    V, info = polish_silhouettes(clean.with_vertices(V), dataset, config.polish, seed=config.seed, device=str(device))
+    lifted = clean.with_vertices(V)
+    V, info = polish_silhouettes(lifted, dataset, config.polish, seed=config.seed, device=str(device))
+    V, info["overlap_put_back"] = keep_unfolded(lifted, V)
     info["pits_lifted"] = pits
     state.add_time("polish", time.perf_counter() - t0, 0)
     return _move_vertices(model, clean, V), info
@@ -287,13 +294,15 @@ def _touch_up(model, clean, dataset, config, device, state, polish_info, *, impr
         return clean
     from dataclasses import replace
 
-    from holowarp.stages.polish import keep_angles, polish_silhouettes
+    from holowarp.stages.polish import keep_angles, keep_unfolded, polish_silhouettes
 
     t0 = time.perf_counter()
     V, info = polish_silhouettes(clean, dataset, replace(p, steps=p.after_steps, min_volume_fraction=p.after_volume_fraction),
                                  seed=config.seed + 1, device=str(device))
     if p.after_angle_floor is not None:
         V, info["angle_put_back"] = keep_angles(clean, V, p.after_angle_floor)
+    else:
+        V, info["angle_put_back"] = keep_unfolded(clean, V)
     polish_info["after"] = info
     state.add_time("polish", time.perf_counter() - t0, 0)
     return _move_vertices(model, clean, V)

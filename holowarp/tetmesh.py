@@ -460,6 +460,19 @@ class TetMesh:
             )
         return np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
 
+    def boundary_wedges(self) -> tuple[np.ndarray, np.ndarray]:
+        """The boundary edges (E, 2) int64 and the solid's wedge angle at each (E,) float64,
+        in degrees: the sum of the dihedral angles of the tets around the edge (180 on a flat
+        surface, under 90 on a convex ridge sharper than a box's, near 0 on a knife edge).
+        Over 360 the tets around the edge wrap past a full turn: they overlap in space and
+        the surface cuts through itself there, although none of them is inverted."""
+        edges, wedge_of = ridge_index(self)
+        return edges, wedge_of(self)
+
+    def overlapping_edges(self) -> int:
+        """How many boundary edges have a wedge (:meth:`boundary_wedges`) over 360°."""
+        return int(np.count_nonzero(self.boundary_wedges()[1] > 360.0))
+
     def quality(self) -> dict:
         """Per-tet quality measures (method.md §9).
 
@@ -538,6 +551,26 @@ class TetMesh:
         }
         out.update({k: v for k, v in self.quality_summary().items() if k != "tets"})
         return out
+
+
+def ridge_index(mesh: TetMesh, *, fans: bool = False):
+    """(boundary edges (E, 2), ``wedge_of(m)``): the wedge angles (E,) of those edges
+    (:meth:`TetMesh.boundary_wedges`) in any mesh ``m`` with ``mesh``'s tets, the edge-to-tet
+    bookkeeping done once. With ``fans``, a third item ``fan_of(select)``: the ids of the
+    tets around the selected edges (``select`` (E,) bool)."""
+    edges, _ = mesh._boundary_edges
+    n = max(mesh.num_vertices, 1)
+    tet_keys = _row_keys(np.sort(mesh.tets[:, TET_EDGES].reshape(-1, 2), axis=1).astype(np.int64), n)
+    uk, inv = np.unique(tet_keys, return_inverse=True)
+    at = np.searchsorted(uk, _row_keys(edges, n))
+
+    def wedge_of(m: TetMesh) -> np.ndarray:
+        return np.bincount(inv, weights=np.nan_to_num(m.dihedral_angles().ravel()), minlength=len(uk))[at]
+
+    def fan_of(select: np.ndarray) -> np.ndarray:
+        return np.unique(np.flatnonzero(np.isin(inv, at[select])) // 6)
+
+    return (edges, wedge_of, fan_of) if fans else (edges, wedge_of)
 
 
 def decimate_surface(vertices, faces, max_faces: int) -> tuple[np.ndarray, np.ndarray]:

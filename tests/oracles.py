@@ -98,3 +98,50 @@ def min_dihedral_deg(V: np.ndarray, T: np.ndarray) -> np.ndarray:
         c = (u * w).sum(1) / (np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1))
         out = np.minimum(out, np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
     return out
+
+
+def edge_fan(sectors_deg, *, spiral: float = 0.0):
+    """A tet mesh whose boundary wedge (:meth:`holowarp.tetmesh.TetMesh.boundary_wedges`) at
+    the z-axis edge (0,0,0)-(0,0,1), vertices 0 and 1, is known by construction: the sum of
+    the sectors. One prism per (a, b) sector in degrees (height 1, 3 tets each) with
+    shared rim vertices welded; the rim's radius is 1 + ``spiral`` * angle / 360, so a fan
+    past a full turn has no coincident vertices. Returns (positively oriented mesh, owner
+    (M,): the sector of each tet)."""
+    from holowarp.tetmesh import TetMesh
+
+    angles = sorted({a for s in sectors_deg for a in s})
+    rim = {a: i for i, a in enumerate(angles)}
+    n = len(angles)
+    V = [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    for z in (0.0, 1.0):
+        for a in angles:
+            r = 1.0 + spiral * a / 360.0
+            V.append([r * np.cos(np.radians(a)), r * np.sin(np.radians(a)), z])
+    T, owner = [], []
+    for k, (a, b) in enumerate(sectors_deg):
+        p, q = 2 + rim[a], 2 + rim[b]
+        P, Q = p + n, q + n
+        # Prism (0, p, q) x (1, P, Q) split into three tets.
+        for tet in ([0, p, q, 1], [p, q, 1, Q], [p, 1, P, Q]):
+            T.append(tet)
+            owner.append(k)
+    mesh, _ = TetMesh(np.array(V), np.array(T), validate=False).oriented()
+    return mesh, np.array(owner)
+
+
+def turn_rim(mesh, rows, factor):
+    """:func:`edge_fan` ``mesh``'s vertices (V, 3) with the azimuths of each row of vertices
+    in ``rows`` (index arrays in the order :func:`edge_fan` numbers them, azimuth rising)
+    scaled by ``factor``: the axis's wedge scales with the bottom row."""
+    V = np.asarray(mesh.vertices, dtype=np.float64).copy()
+    for row in rows:
+        r = np.linalg.norm(V[row, :2], axis=1)
+        a = np.unwrap(np.arctan2(V[row, 1], V[row, 0])) * factor
+        V[row, 0], V[row, 1] = r * np.cos(a), r * np.sin(a)
+    return V
+
+
+def axis_wedge(mesh, V):
+    """The wedge in degrees at :func:`edge_fan`'s axis edge (vertices 0 and 1) with positions ``V``."""
+    edges, wedge = mesh.with_vertices(V).boundary_wedges()
+    return float(wedge[(np.sort(edges, axis=1) == [0, 1]).all(axis=1)][0])

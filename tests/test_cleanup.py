@@ -7,10 +7,11 @@ import pytest
 
 from holowarp.primitives import box_tetmesh
 from holowarp.manifold import fill_sealed, repair_manifold
-from holowarp.stages.cleanup import cleanup, ridge_wedges
+from holowarp.stages.cleanup import cleanup
 from holowarp.config import CleanupConfig, TetInitConfig
 from holowarp.stages.tet_init import HullError, scaled_hull
 from holowarp.tetmesh import TetMesh
+from oracles import edge_fan
 
 
 def _edge_pinched_block():
@@ -213,35 +214,12 @@ def test_cleanup_drops_flaps_below_the_flap_angle_and_keeps_sound_spikes():
     assert info["dropped_flaps"] == 0 and len(kept) == spiked.num_tets
 
 
-def _edge_fan(sectors_deg):
-    """Tets of prisms around the z-axis edge (0,0,0)-(0,0,1): one prism per (a, b) sector
-    in degrees (radius 1, height 1, 3 tets each), with shared rim vertices welded."""
-    angles = sorted({a for s in sectors_deg for a in s})
-    rim = {a: i for i, a in enumerate(angles)}
-    n = len(angles)
-    V = [[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
-    for a in angles:
-        V.append([np.cos(np.radians(a)), np.sin(np.radians(a)), 0.0])
-    for a in angles:
-        V.append([np.cos(np.radians(a)), np.sin(np.radians(a)), 1.0])
-    T, owner = [], []
-    for k, (a, b) in enumerate(sectors_deg):
-        p, q = 2 + rim[a], 2 + rim[b]
-        P, Q = p + n, q + n
-        # Prism (0, p, q) x (1, P, Q) split into three tets.
-        for tet in ([0, p, q, 1], [p, q, 1, Q], [p, 1, P, Q]):
-            T.append(tet)
-            owner.append(k)
-    mesh, _ = TetMesh(np.array(V), np.array(T), validate=False).oriented()
-    return mesh, np.array(owner)
-
-
 def test_cleanup_puts_back_caps_whose_removal_would_pinch_the_boundary():
     # Two thick fans around one edge, joined on one side by a 2-degree sliver sector and
     # open on the other: manifold as given. Dropping the sliver tets (caps: min dihedral
     # < 5 degrees, on the boundary) would leave two fans meeting at the edge only.
     sectors = [(0, 40), (40, 80), (80, 120), (120, 160), (160, 162), (162, 200), (200, 240), (240, 280), (280, 320)]
-    mesh, owner = _edge_fan(sectors)
+    mesh, owner = edge_fan(sectors)
     assert mesh.manifold()["manifold"] and mesh.num_components() == 1
     q = mesh.quality()["min_dihedral_deg"]
     assert np.all(q[owner == 4] < 5.0) and np.all(q[owner != 4] > 5.0)
@@ -263,7 +241,7 @@ def test_a_flap_put_back_with_a_pinching_cap_is_dropped_on_its_own():
     # one of its tets: the flap goes with the slivers, comes back with them (it touches the
     # pinched edge's vertex), and must then go alone.
     sectors = [(0, 40), (40, 80), (80, 120), (120, 160), (160, 162), (162, 200), (200, 240), (240, 280), (280, 320)]
-    fan, owner = _edge_fan(sectors)
+    fan, owner = edge_fan(sectors)
     V, T = fan.vertices, fan.tets
     top = next(f for f in fan.boundary_faces() if np.allclose(V[f][:, 2], 1.0)
                and any(set(f) <= set(T[i]) for i in np.flatnonzero(owner == 4)))
@@ -299,10 +277,10 @@ def _prism(apex_deg: float, segments: int = 6, rng=None):
 
 
 def test_blunting_opens_knife_ridges_within_its_move_bound(rng):
-    from holowarp.stages.cleanup import blunt_ridges, ridge_wedges
+    from holowarp.stages.cleanup import blunt_ridges
 
     mesh = _prism(20.0, rng=rng)
-    edges, wedge = ridge_wedges(mesh)
+    edges, wedge = mesh.boundary_wedges()
     apex = np.arange(0, mesh.num_vertices, 3)
     ridge = np.isin(edges, apex).all(axis=1)
     # The oracle: the wedge along the ridge is the cross-section's apex angle.
@@ -319,7 +297,7 @@ def test_blunting_opens_knife_ridges_within_its_move_bound(rng):
     assert np.all(move[np.setdiff1d(np.arange(mesh.num_vertices), apex)] == 0)
     assert np.all(out.vertices[apex, 0] > mesh.vertices[apex, 0])
     assert np.all(out.signed_volumes() > 0)
-    assert ridge_wedges(out)[1][ridge].min() > wedge[ridge].max()
+    assert out.boundary_wedges()[1][ridge].min() > wedge[ridge].max()
     # A box has 90° ridges: nothing moves, and 0 turns the step off.
     box = box_tetmesh((2, 2, 2))
     same, info = blunt_ridges(box, cfg)
@@ -347,18 +325,40 @@ def test_a_cap_whose_removal_would_leave_a_knife_ridge_is_put_back():
     # are caps, but without them the fan's edge would be a knife ridge (wedge 28 < 30
     # degrees), which every tet there would have to cut at less than 28 degrees. (The flap
     # rule is off: one of the thin tets is also a flap, which goes whatever it leaves.)
-    mesh, owner = _edge_fan([(0, 28), (28, 31)])
+    mesh, owner = edge_fan([(0, 28), (28, 31)])
     q = mesh.quality()["min_dihedral_deg"]
     assert np.all(q[owner == 1] < CleanupConfig().cap_dihedral_deg) and np.all(q[owner == 0] > 5.0)
-    edges, wedge = ridge_wedges(mesh)
+    edges, wedge = mesh.boundary_wedges()
     axis = np.flatnonzero((np.sort(edges, axis=1) == [0, 1]).all(axis=1))
     assert np.isclose(wedge[axis], 31.0).all() and wedge.min() >= 30.0
 
     clean, kept, info = cleanup(mesh, CleanupConfig(flap_dihedral_deg=0.0))
     # The cap at the edge is put back; the two others go, as they leave no ridge behind.
     assert info["caps_restored_for_folds"] == 1 and info["dropped_caps"] == 2
-    assert 3 in kept and info["blunt"]["sharp_edges_before"] == 0 and ridge_wedges(clean)[1].min() >= 30.0
+    assert 3 in kept and info["blunt"]["sharp_edges_before"] == 0 and clean.boundary_wedges()[1].min() >= 30.0
     # Without the knife-ridge rule (blunting off) the caps go and the ridge sharpens.
     clean, kept, info = cleanup(mesh, CleanupConfig(flap_dihedral_deg=0.0, blunt_wedge_deg=0.0))
     assert info["dropped_caps"] == int((owner == 1).sum()) and info["caps_restored_for_folds"] == 0
-    assert ridge_wedges(clean)[1].min() < 28.5
+    assert clean.boundary_wedges()[1].min() < 28.5
+
+
+def test_tets_wrapping_past_a_full_turn_are_peeled_at_an_end_of_their_fan():
+    # Eight 50-degree sectors round one edge: 400 degrees, so the first and the last
+    # sector overlap in space (the rim spirals outwards, so no two vertices coincide). The
+    # oracle is the construction: the wedge at the axis is the sum of the sectors.
+    sectors = [(50 * k, 50 * (k + 1)) for k in range(8)]
+    mesh, owner = edge_fan(sectors, spiral=0.05)
+    assert mesh.manifold()["manifold"] and np.all(mesh.signed_volumes() > 0)
+    edges, wedge = mesh.boundary_wedges()
+    axis = (np.sort(edges, axis=1) == [0, 1]).all(axis=1)
+    assert np.isclose(wedge[axis], 400.0).all() and mesh.overlapping_edges() == 1
+    clean, kept, info = cleanup(mesh, CleanupConfig())
+    # One end tet at the axis goes (50 degrees): the fan no longer overlaps, nothing else changes.
+    assert info["dropped_overlaps"] == 1 and clean.num_tets == mesh.num_tets - 1
+    assert clean.overlapping_edges() == 0 and clean.manifold()["manifold"]
+    edges, wedge = clean.boundary_wedges()
+    assert np.isclose(wedge[(np.sort(edges, axis=1) == [0, 1]).all(axis=1)], 350.0).all()
+    # A fan short of a full turn is left alone.
+    mesh, _ = edge_fan(sectors[:7], spiral=0.05)
+    clean, kept, info = cleanup(mesh, CleanupConfig())
+    assert info["dropped_overlaps"] == 0 and mesh.overlapping_edges() == 0 and clean.num_tets == mesh.num_tets

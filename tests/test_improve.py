@@ -566,3 +566,16 @@ def test_remeasured_budget_is_the_distance_to_the_input_surface():
     np.testing.assert_allclose(w.err[umbrella], ImproveConfig().hausdorff_margin * 0.01, rtol=1e-9)
     others = np.setdiff1d(np.unique(mesh.boundary_faces()), umbrella)
     assert np.all(w.err[others] < 1e-12) and np.all(w.err[~np.isin(np.arange(len(V)), mesh.boundary_faces())] == 0.0)
+
+
+def test_improve_deletes_an_end_tet_where_a_boundary_fan_wraps_past_a_full_turn():
+    from oracles import edge_fan
+
+    # Eight 50-degree sectors round one edge: 400 degrees, so the first and last sectors
+    # overlap in space though every tet is positive.
+    mesh, _ = edge_fan([(a, a + 50) for a in range(0, 400, 50)], spiral=0.05)
+    assert mesh.overlapping_edges() == 1 and np.all(mesh.signed_volumes() > 0)
+    out, parent, info = I.improve(mesh)
+    assert out.overlapping_edges() == 0 and info["flips"]["overlap_removal"] >= 1
+    assert info["topology"] == {"components": 1, "genus": 0, "boundary_shells": 1, "manifold": True}
+    assert np.all(out.signed_volumes() > 0) and len(parent) == out.num_tets

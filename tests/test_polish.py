@@ -10,6 +10,7 @@ import trimesh
 from holowarp.config import PolishConfig, preset
 from holowarp.data import Dataset
 from holowarp.stages.polish import keep_angles, polish_silhouettes
+from holowarp.tetmesh import TetMesh
 from holowarp.tetmesh import tetrahedralize_surface
 
 RADIUS = 0.35
@@ -104,6 +105,47 @@ def test_keep_angles_puts_back_exactly_the_moves_that_cost_the_floor(grown_spher
     small[b] += rng.normal(scale=1e-4 * h, size=(len(b), 3))
     V2, n2 = keep_angles(mesh, small, 0.0)
     assert n2 == 0 and np.array_equal(V2, small)
+
+
+def _fan_and_lone_tet(total_deg: float):
+    """A fan of 50-degree sectors round the z-axis edge (vertices 0 and 1) adding up to
+    ``total_deg``, plus a lone tet far from it; the fan's rim vertices, and those at the
+    axis's foot (the ones in the axis's own tets)."""
+    from oracles import edge_fan
+
+    fan, _ = edge_fan([(a, a + 50) for a in range(0, int(total_deg), 50)], spiral=0.05)
+    lone = np.array([[5.0, 0, 0], [6.0, 0, 0], [5.0, 1.0, 0], [5.0, 0, 1.0]])
+    V = np.concatenate([fan.vertices, lone])
+    T = np.concatenate([fan.tets, [np.arange(4) + fan.num_vertices]])
+    mesh, _ = TetMesh(V, T).oriented()
+    return mesh, np.arange(2, fan.num_vertices), np.arange(2, 2 + (fan.num_vertices - 2) // 2)
+
+
+def test_keep_unfolded_puts_back_the_moves_that_wrap_a_fan_past_a_full_turn(rng):
+    from holowarp.stages.polish import keep_unfolded
+    from oracles import axis_wedge, turn_rim
+
+    mesh, rim, foot = _fan_and_lone_tet(350.0)
+    apex = mesh.num_vertices - 1
+    V1 = turn_rim(mesh, (foot, rim[len(foot):]), 1.1)
+    V1[apex] += rng.uniform(0.05, 0.1, 3)  # a move far from the fan
+    assert np.isclose(axis_wedge(mesh, V1), 385.0) and mesh.with_vertices(V1).overlapping_edges() == 1
+    V, put_back = keep_unfolded(mesh, V1)
+    # The moved rim vertices of the axis's tets go back (the one at azimuth 0 never moved),
+    # the rest of the rim and the lone tet keep their moves.
+    back = np.flatnonzero(np.any(V != V1, axis=1))
+    assert put_back == len(foot) - 1 and np.array_equal(back, foot[1:])
+    assert np.array_equal(V[back], np.asarray(mesh.vertices)[back])
+    assert np.array_equal(V[apex], V1[apex]) and np.isclose(axis_wedge(mesh, V), 350.0)
+    # Turning the other way (335 degrees) costs nothing and stays.
+    V2, n2 = keep_unfolded(mesh, turn_rim(mesh, (foot, rim[len(foot):]), 335.0 / 350.0))
+    assert n2 == 0 and np.isclose(axis_wedge(mesh, V2), 335.0)
+    # A fan over a full turn already may unwind, not wind further.
+    over, rim, foot = _fan_and_lone_tet(400.0)
+    V3, n3 = keep_unfolded(over, turn_rim(over, (foot, rim[len(foot):]), 0.95))
+    assert n3 == 0 and np.isclose(axis_wedge(over, V3), 380.0)
+    V4, n4 = keep_unfolded(over, turn_rim(over, (foot, rim[len(foot):]), 1.02))
+    assert n4 == len(foot) - 1 and np.isclose(axis_wedge(over, V4), 400.0)
 
 
 @pytest.mark.parametrize("bad", [dict(steps=-1), dict(views=0), dict(steps=2.5), dict(lr=float("nan")),

@@ -14,7 +14,10 @@ when a dataset is given):
 - topology of the prediction: ``components`` (face-connected tet components), ``manifold``
   (boundary edge- and vertex-manifold), ``genus`` (of the boundary, summed over its shells),
   ``tets``, ``boundary_shells`` (connected pieces of the boundary: 1 unless a sealed void
-  adds an inner one, which no view sees and ``genus`` does not show);
+  adds an inner one, which no view sees and ``genus`` does not show), ``overlapping_edges``
+  (boundary edges whose tets' dihedral angles add up to more than 360°: the tets overlap in
+  space there and the surface cuts through itself, though none is inverted; 0 for an
+  embedded mesh);
 - tet quality: ``inverted_ratio`` (signed volume <= 0, on the mesh AS GIVEN),
   ``min_dihedral_mean``, ``min_dihedral_worst`` (degrees), ``aspect_ratio_mean``.
 
@@ -83,12 +86,14 @@ METRIC_KEYS = (
     "chamfer_l1_floor",
     "concave_chamfer",
     "boundary_shells",
+    "overlapping_edges",
 )
 #: The keys that describe the prediction's tets (``None`` for a surface prediction).
 #: ``boundary_shells``: connected pieces of the boundary surface. One object without a
 #: sealed void has one; ``genus`` sums over shells, so a void would hide in it.
+#: ``overlapping_edges``: boundary edges whose tets wrap past a full turn (overlap in space).
 TET_KEYS = ("components", "manifold", "genus", "tets", "inverted_ratio", "min_dihedral_mean", "min_dihedral_worst",
-            "aspect_ratio_mean", "boundary_shells")
+            "aspect_ratio_mean", "boundary_shells", "overlapping_edges")
 
 
 class EvaluationError(InputError):
@@ -159,6 +164,7 @@ def _tet_keys(ptm) -> dict:
         "min_dihedral_worst": float(q["min_dihedral_worst"]),
         "aspect_ratio_mean": float(q["aspect_ratio_mean"]),
         "boundary_shells": int(ptm.boundary_shells()),
+        "overlapping_edges": int(oriented.overlapping_edges()),
     }
 
 

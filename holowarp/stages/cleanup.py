@@ -28,7 +28,7 @@ In order:
    pits that removing whole fans digs (measured on bob: Chamfer-L1 of a pitted run
    0.0041 → 0.0037, at the level of the mesh before cleanup). Flaps put back this way are
    then dropped on their own, which never pinches. **Folds**: a dropped cap (not a flap)
-   that holds a boundary edge whose wedge (:func:`ridge_wedges`) is now a knife ridge
+   that holds a boundary edge whose wedge (:meth:`~holowarp.tetmesh.TetMesh.boundary_wedges`) is now a knife ridge
    (under ``blunt_wedge_deg``) or a slit (over 360° minus it) is put back too, with the
    manifold restoration after each round, until no dropped cap holds one. A cap whose
    fourth vertex does not lie over its boundary face exposes a surface folded onto itself
@@ -41,7 +41,17 @@ In order:
    5.8 → 16.1°, dented box 6.0 → 10.7°, plate 2.7 → 10.4°, mug 7.8 → 12.5°, bowl 5.5 →
    14.4°), with Chamfer-L1 lower on seven objects (-0.3% to -2.3%) and +0.3% on the
    bowl. Dropping no caps at all (``cap_dihedral_deg`` 0) also lifts every worst angle
-   above 10°, but costs fandisk and the dented box 1.2 and 1.6 points of F@0.005;
+   above 10°, but costs fandisk and the dented box 1.2 and 1.6 points of F@0.005.
+   **Overlaps**: at a boundary edge whose wedge is over 360° the tets around it wrap past a
+   full turn, so they overlap in space and the surface cuts through itself there, although
+   every tet is positive (the main loop leaves a few: 0-4 per run on the quality suite).
+   Every round drops, at each such edge, the end tet of its fan with the larger dihedral
+   angle there (usually an almost flat tet lying across the edge), with the manifold
+   restoration after it; an end tet that restoration puts back is not tried again, so an
+   overlap whose two end tets both pinch the boundary stays (the report's
+   ``overlapping_edges`` counts what is left). On the thin plate at seed 1 (fast, 128²)
+   two tets went, and §7b's worst angle after the touch-up rose from 7.6° to 11.3°, the
+   flat tet at the 406° edge having been the worst;
 4. **sealed voids**: every removed tet that no longer connects to the outside through other
    removed tets is put back (oriented positively), so that dropping a degenerate interior
    tet leaves no void that no image sees (a second boundary shell, which would also pinch
@@ -80,9 +90,9 @@ import numpy as np
 
 from holowarp.config import CleanupConfig, kept_components
 from holowarp.manifold import fill_sealed, repair_manifold, restore_until_manifold
-from holowarp.tetmesh import TetMesh
+from holowarp.tetmesh import TetMesh, ridge_index
 
-__all__ = ["cleanup"]
+__all__ = ["cleanup", "overlap_ends"]
 
 
 def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[TetMesh, np.ndarray, dict]:
@@ -93,11 +103,12 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
         the indices of its tets in the input (tet i of the output is input tet kept[i],
         possibly with two vertices swapped), and a report of every count:
         ``inverted_before_cleanup`` (signed volume <= 0 on entry), ``flipped``, ``dropped``
-        (degenerate, net of those put back), ``dropped_caps`` (boundary slivers and flaps,
-        net of those put back), ``dropped_flaps`` (the flaps among them),
+        (degenerate, net of those put back), ``dropped_caps`` (boundary slivers, flaps and
+        overlaps, net of those put back), ``dropped_flaps`` (the flaps among them),
         ``caps_restored_for_manifold``, ``caps_restored_for_folds`` (caps put back because
-        their removal left a knife ridge or a slit, step 3), ``components_before``, ``components_removed``,
-        ``tets_removed_by_component``, ``tets_removed_for_manifold``, ``filled_sealed``
+        their removal left a knife ridge or a slit, step 3), ``dropped_overlaps`` (tets
+        dropped where their fan wrapped past a full turn, step 3), ``components_before``,
+        ``components_removed``, ``tets_removed_by_component``, ``tets_removed_for_manifold``, ``filled_sealed``
         (removed tets put back because they sealed a void), ``manifold``,
         ``components``, ``inverted_after_cleanup``, ``tets_before``, ``tets_after``, and
         ``blunt`` (:func:`blunt_ridges`' report).
@@ -113,9 +124,10 @@ def cleanup(mesh: TetMesh, config: CleanupConfig = CleanupConfig()) -> tuple[Tet
     t = mesh.tets.copy()
     t[flip, 2], t[flip, 3] = mesh.tets[flip, 3], mesh.tets[flip, 2]
     info["flipped"] = int(flip.sum())
-    keep, capped, flaps, folds = _drop_caps_and_flaps(mesh.vertices, t, ~degenerate, config)
+    keep, capped, flaps, folds, peeled = _drop_caps_and_flaps(mesh.vertices, t, ~degenerate, config)
     restored = int(np.count_nonzero(capped & keep & ~folds))
     keep, info["filled_sealed"] = _fill_sealed_voids(mesh, t, vol, keep)
+    info["dropped_overlaps"] = int(np.count_nonzero(peeled & ~keep))
     caps = int(np.count_nonzero(capped & ~keep))
     info["dropped"] = int(np.count_nonzero(degenerate & ~keep)) + caps
     info["dropped_caps"] = caps
@@ -158,35 +170,10 @@ def _fill_sealed_voids(mesh: TetMesh, t: np.ndarray, vol: np.ndarray, keep: np.n
     return out, filled
 
 
-def ridge_wedges(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
-    """The boundary edges (E, 2) int64 and the solid's wedge angle at each (E,) float64, in
-    degrees: the sum of the dihedral angles of the tets around the edge (180 on a flat
-    surface, under 90 on a convex ridge sharper than a box's, near 0 on a knife edge)."""
-    edges, wedge_of = _ridge_index(mesh)
-    return edges, wedge_of(mesh)
-
-
-def _ridge_index(mesh: TetMesh):
-    """(boundary edges (E, 2), ``wedge_of(m)``): the wedge angles (E,) of those edges in any
-    mesh ``m`` with ``mesh``'s tets (the edge-to-tet bookkeeping is done once)."""
-    from holowarp.tetmesh import TET_EDGES, _row_keys
-
-    edges, _ = mesh._boundary_edges
-    n = max(mesh.num_vertices, 1)
-    tet_keys = _row_keys(np.sort(mesh.tets[:, TET_EDGES].reshape(-1, 2), axis=1).astype(np.int64), n)
-    uk, inv = np.unique(tet_keys, return_inverse=True)
-    at = np.searchsorted(uk, _row_keys(edges, n))
-
-    def wedge_of(m: TetMesh) -> np.ndarray:
-        return np.bincount(inv, weights=np.nan_to_num(m.dihedral_angles().ravel()), minlength=len(uk))[at]
-
-    return edges, wedge_of
-
-
 def blunt_ridges(mesh: TetMesh, config: CleanupConfig, min_volume: float = 0.0) -> tuple[TetMesh, dict]:
     """Step 8 of the module docstring: open the knife ridges of the boundary.
 
-    A boundary edge whose wedge angle (:func:`ridge_wedges`) is below
+    A boundary edge whose wedge angle (:meth:`~holowarp.tetmesh.TetMesh.boundary_wedges`) is below
     ``config.blunt_wedge_deg`` can only be cut by tets whose dihedral angle at that edge is
     smaller still. Its two vertices move ``config.blunt_step`` of the way to the centroid
     of their boundary neighbours (an umbrella step along the surface, which pulls a ridge
@@ -205,7 +192,7 @@ def blunt_ridges(mesh: TetMesh, config: CleanupConfig, min_volume: float = 0.0) 
             "rounds": 0}
     if config.blunt_wedge_deg <= 0 or len(bf) == 0:
         return mesh, info
-    edges, wedge_of = _ridge_index(mesh)
+    edges, wedge_of = ridge_index(mesh)
     wedge = wedge_of(mesh)
     L = float(np.linalg.norm(V[edges[:, 0]] - V[edges[:, 1]], axis=1).mean())
     allowance = np.full(len(V), config.blunt_max_move * L)
@@ -278,6 +265,8 @@ def _drop_caps_and_flaps(vertices, t, keep, config: CleanupConfig):
     capped = start & ~keep
     keep, _ = restore_until_manifold(vertices, t, keep, capped)
     keep, folds = _put_back_folding_caps(vertices, t, keep, capped & ~flaps, capped, config)
+    keep, peeled = _peel_overlaps(vertices, t, keep, config)
+    capped |= peeled
     # A flap dropped next to a cap whose removal pinched came back with it. On its own a
     # flap never pinches (its apex goes with it, and its inner face takes the place of its
     # three outer ones on the surface), so the flaps left are dropped again by themselves.
@@ -293,7 +282,67 @@ def _drop_caps_and_flaps(vertices, t, keep, config: CleanupConfig):
         if back == int(flap.sum()):
             break
         keep, capped, flaps = after, capped | drop, flaps | drop
-    return keep, capped, flaps, folds & keep
+    return keep, capped, flaps, folds & keep, peeled & ~keep
+
+
+def overlap_ends(mesh: TetMesh, skip=None) -> np.ndarray:
+    """The tets to drop where ``mesh``'s boundary overlaps itself (step 3's overlaps).
+
+    At a boundary edge whose wedge (:meth:`holowarp.tetmesh.TetMesh.boundary_wedges`) is
+    over 360° the tets around the edge wrap past a full turn: they overlap in space and the
+    surface cuts through itself there, although every tet is positive. For each such edge
+    this picks the end tet of its fan (the owner of one of the edge's two boundary faces)
+    with the larger dihedral angle at the edge (usually an almost flat tet lying across
+    it), or the other end where ``skip`` rules the first out.
+
+    Args:
+        mesh: the tet mesh.
+        skip: optional ``skip(tets) -> (K,) bool`` for candidate tet ids (K,) of ``mesh``.
+
+    Returns:
+        (J,) int64 unique tet ids of ``mesh``, at most one per overlapping edge.
+    """
+    from holowarp.tetmesh import TET_EDGES, _row_keys
+
+    n = max(mesh.num_vertices, 1)
+    edges, wedge = mesh.boundary_wedges()
+    over = _row_keys(edges[wedge > 360.0], n)
+    if len(over) == 0:
+        return np.zeros(0, dtype=np.int64)
+    bf = mesh.boundary_faces().astype(np.int64)
+    fe = _row_keys(np.sort(np.stack([bf[:, [0, 1]], bf[:, [1, 2]], bf[:, [2, 0]]], 1), axis=2).reshape(-1, 2), n)
+    hit = np.flatnonzero(np.isin(fe, over))
+    tet = mesh.boundary_face_tets()[hit // 3].astype(np.int64)
+    if skip is not None:
+        ok = ~skip(tet)
+        hit, tet = hit[ok], tet[ok]
+    if len(hit) == 0:
+        return np.zeros(0, dtype=np.int64)
+    te = _row_keys(np.sort(mesh.tets[tet][:, TET_EDGES], axis=2).reshape(-1, 2), n).reshape(-1, 6)
+    local = np.argmax(te == fe[hit, None], axis=1)
+    angle = np.nan_to_num(TetMesh(mesh.vertices, mesh.tets[tet], validate=False).dihedral_angles())
+    order = np.lexsort((-angle[np.arange(len(tet)), local], fe[hit]))  # per edge, the larger angle first
+    first = order[np.r_[True, fe[hit][order][1:] != fe[hit][order][:-1]]]
+    return np.unique(tet[first])
+
+
+def _peel_overlaps(vertices, t, keep, config: CleanupConfig):
+    """Step 3's overlaps: each round drops the tets :func:`overlap_ends` picks in
+    ``t[keep]``, then runs the manifold restoration; an end tet it puts back is not tried
+    again. Returns (keep, the tets dropped here), each (M,) bool."""
+    peeled = np.zeros(len(t), dtype=bool)
+    tried = np.zeros(len(t), dtype=bool)
+    for _ in range(config.max_repair_rounds):
+        ids = np.flatnonzero(keep)
+        ends = overlap_ends(TetMesh(vertices, t[ids], validate=False), skip=lambda tt: tried[ids[tt]])
+        if len(ends) == 0:
+            break
+        drop = np.zeros(len(t), dtype=bool)
+        drop[ids[ends]] = True
+        keep, _ = restore_until_manifold(vertices, t, keep & ~drop, drop)
+        tried |= drop & keep
+        peeled |= drop & ~keep
+    return keep, peeled
 
 
 def _put_back_folding_caps(vertices, t, keep, caps, capped, config: CleanupConfig):
@@ -312,7 +361,7 @@ def _put_back_folding_caps(vertices, t, keep, caps, capped, config: CleanupConfi
         cand = np.flatnonzero(caps & ~keep)
         if len(cand) == 0:
             break
-        edges, wedge = ridge_wedges(TetMesh(vertices, t[keep], validate=False))
+        edges, wedge = TetMesh(vertices, t[keep], validate=False).boundary_wedges()
         sharp = (wedge < config.blunt_wedge_deg) | (wedge > 360.0 - config.blunt_wedge_deg)
         if not sharp.any():
             break

@@ -67,9 +67,9 @@ import numpy as np
 import torch
 
 from holowarp.config import PolishConfig
-from holowarp.tetmesh import TetMesh
+from holowarp.tetmesh import TetMesh, ridge_index
 
-__all__ = ["keep_angles", "lift_pits", "polish_silhouettes"]
+__all__ = ["keep_angles", "keep_unfolded", "lift_pits", "polish_silhouettes"]
 
 
 def _boundary_graph(mesh: TetMesh):
@@ -151,25 +151,37 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
     return out, info
 
 
-def keep_angles(mesh: TetMesh, vertices, floor_deg: float) -> tuple[np.ndarray, int]:
+def keep_angles(mesh: TetMesh, vertices, floor_deg: float, *, unfold: bool = True) -> tuple[np.ndarray, int]:
     """Put back the moved vertices of every tet whose smallest dihedral angle at ``vertices``
     fell below ``min(floor_deg, mesh's worst)``, or that inverted, repeatedly, so the fit
     after the element improvement never takes the worst angle below what §7b reached (or
     below ``floor_deg`` where §7b reached more).
 
+    With ``unfold``, the moved vertices of the tets around every boundary edge whose wedge
+    (the sum of its tets' dihedral angles, :meth:`holowarp.tetmesh.TetMesh.boundary_wedges`)
+    rose past 360°, or past what it was in ``mesh`` where it was over 360° already, go back
+    as well, in the same loop. Past a full turn the tets around the edge overlap in space
+    and the surface cuts through itself, although none of them inverts: the fits would
+    deepen the overlaps that cleanup peels (step 3 of :mod:`holowarp.stages.cleanup`).
+
     Args:
         mesh: the tet mesh before the fit (its positions are the ones put back).
         vertices: (V, 3) positions after the fit.
         floor_deg: degrees (method.md §7b's target, 10).
+        unfold: also keep the boundary wedges from wrapping past a full turn.
 
     Returns:
         (vertices (V, 3) float64, number of vertices put back). Terminates: a tet whose
-        vertices are all put back has its angles from ``mesh``, none below the floor.
+        vertices are all put back has its angles from ``mesh``, none below the floor, and an
+        edge whose tets' vertices are all put back has its wedge from ``mesh``.
     """
     V0 = np.asarray(mesh.vertices, dtype=np.float64)
     V = np.array(vertices, dtype=np.float64)
     T = np.asarray(mesh.tets)
     floor = min(float(floor_deg), float(np.nanmin(mesh.dihedral_angles())))
+    if unfold:
+        _, wedge_of, fan_of = ridge_index(mesh, fans=True)
+        limit = np.maximum(wedge_of(mesh), 360.0)
     moved = np.any(V != V0, axis=1)
     put_back = 0
     while moved.any():
@@ -177,6 +189,8 @@ def keep_angles(mesh: TetMesh, vertices, floor_deg: float) -> tuple[np.ndarray, 
         local = TetMesh(V.copy(), T[cand], validate=False)  # TetMesh freezes what it gets
         ang = local.dihedral_angles().min(axis=1)
         bad = cand[~(ang >= floor) | (local.signed_volumes() <= 0)]  # nan (degenerate) and inverted are bad
+        if unfold:
+            bad = np.union1d(bad, fan_of(wedge_of(TetMesh(V.copy(), T, validate=False)) > limit))
         back = np.unique(T[bad])
         back = back[moved[back]]
         if len(back) == 0:
@@ -185,6 +199,13 @@ def keep_angles(mesh: TetMesh, vertices, floor_deg: float) -> tuple[np.ndarray, 
         moved[back] = False
         put_back += len(back)
     return V, put_back
+
+
+def keep_unfolded(mesh: TetMesh, vertices) -> tuple[np.ndarray, int]:
+    """:func:`keep_angles` without an angle floor: the moves that wrap a boundary edge's
+    tets past a full turn (or further past it), or that invert or flatten a tet, are put
+    back. Returns (vertices (V, 3) float64, number of vertices put back)."""
+    return keep_angles(mesh, vertices, 0.0, unfold=True)
 
 
 def lift_pits(mesh: TetMesh, config: PolishConfig) -> tuple[np.ndarray, int]:
