@@ -94,6 +94,8 @@ def _run(args) -> int:
         f"{info['boundary_faces']} boundary faces, {info['components']} component(s), "
         f"manifold={info['manifold']}, genus={info['genus']}, inverted={info['inverted']}"
         + (f", flipped={info['flipped']}" if args.orient else "")
+        + (f", overlapping edges={info['overlapping_edges']} (the tets around them overlap in space)"
+           if info["overlapping_edges"] else "")
         + (f"; re-oriented all {info['reoriented']} tets (the file used the opposite winding)" if info["reoriented"] else "")
     )
     return 0

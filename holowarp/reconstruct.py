@@ -142,7 +142,8 @@ def _run(args) -> int:
     print(
         f"wrote {args.out}: {report['tets_final']} tets, {report['components']} component(s), "
         f"manifold={report['manifold']}, genus={report['genus']}, inverted={report['inverted_ratio']:.4f}, "
-        f"PSNR {report['psnr_test']:.2f} dB, {report['seconds_total']:.0f} s"
+        + (f"overlapping edges={report['overlapping_edges']}, " if report.get("overlapping_edges") else "")
+        + f"PSNR {report['psnr_test']:.2f} dB, {report['seconds_total']:.0f} s"
         + (f", chamfer_l1 {m['chamfer_l1']:.4f}, volume_iou {m['volume_iou']:.3f}" if m else "")
     )
     for o in (report.get("scene") or {}).get("objects", []):

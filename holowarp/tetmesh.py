@@ -547,6 +547,7 @@ class TetMesh:
             "components": self.num_components(),
             "manifold": man["manifold"],
             "genus": self.genus(),
+            "overlapping_edges": self.overlapping_edges(),
             "volume": self.volume(),
         }
         out.update({k: v for k, v in self.quality_summary().items() if k != "tets"})

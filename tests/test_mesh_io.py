@@ -46,6 +46,18 @@ def test_convert_cli_between_tet_formats(tmp_path, mesh, src, dst, capsys):
     np.testing.assert_allclose(back.vertices, mesh.vertices, atol=1e-7)
 
 
+def test_convert_cli_says_where_tets_overlap(tmp_path, capsys):
+    from oracles import edge_fan
+
+    fan, _ = edge_fan([(a, a + 50) for a in range(0, 400, 50)], spiral=0.05)  # 400 degrees round one edge
+    assert convert_main([str(_write(tmp_path, fan)), str(tmp_path / "out.vtu")]) == 0
+    assert "overlapping edges=1" in capsys.readouterr().out
+    assert fan.summary()["overlapping_edges"] == 1
+    box, _ = edge_fan([(a, a + 50) for a in range(0, 350, 50)], spiral=0.05)
+    assert convert_main([str(_write(tmp_path, box, "b.npz")), str(tmp_path / "b.vtu")]) == 0
+    assert "overlapping" not in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("ext", [".obj", ".ply"])
 def test_boundary_surface_export_is_closed_outward_and_matches_volume(tmp_path, mesh, ext):
     path = tmp_path / f"s{ext}"
