@@ -98,6 +98,7 @@ from dataclasses import replace
 import numpy as np
 
 from holowarp.config import ETA_HISTOGRAM_EDGES, QUALITY_MEASURES, ImproveConfig
+from holowarp.stages.cleanup import overlap_ends
 from holowarp.tetmesh import TET_EDGE_FACES, TET_EDGES, TET_FACES, TetMesh
 
 __all__ = [
@@ -1146,8 +1147,6 @@ def _peel_overlaps(w: _Work, signature: tuple) -> int:
     past a full turn, batch by batch through the topology check, trying an edge's other
     end where the first one fails it. Ends: a round deletes a tet or rules one out, and
     deleting tets raises no wedge. Returns the number of tets deleted."""
-    from holowarp.stages.cleanup import overlap_ends
-
     failed: set = set()
     deleted = 0
     while True:
@@ -1157,7 +1156,8 @@ def _peel_overlaps(w: _Work, signature: tuple) -> int:
         keys = [tuple(np.sort(t)) for t in w.T[ends]]  # before the deletions renumber the tets
         applied = _apply_checked(w, signature, ends[:, None], np.full((len(ends), 1, 4), -1, dtype=np.int64),
                                  w.T[ends].astype(np.int64), np.arange(len(ends)), depth=6)
-        failed.update(k for i, k in enumerate(keys) if i not in set(applied.tolist()))
+        done = set(applied.tolist())
+        failed.update(k for i, k in enumerate(keys) if i not in done)
         deleted += len(applied)
     return deleted
 

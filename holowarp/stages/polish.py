@@ -151,13 +151,13 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
     return out, info
 
 
-def keep_angles(mesh: TetMesh, vertices, floor_deg: float, *, unfold: bool = True) -> tuple[np.ndarray, int]:
+def keep_angles(mesh: TetMesh, vertices, floor_deg: float) -> tuple[np.ndarray, int]:
     """Put back the moved vertices of every tet whose smallest dihedral angle at ``vertices``
     fell below ``min(floor_deg, mesh's worst)``, or that inverted, repeatedly, so the fit
     after the element improvement never takes the worst angle below what §7b reached (or
     below ``floor_deg`` where §7b reached more).
 
-    With ``unfold``, the moved vertices of the tets around every boundary edge whose wedge
+    The moved vertices of the tets around every boundary edge whose wedge
     (the sum of its tets' dihedral angles, :meth:`holowarp.tetmesh.TetMesh.boundary_wedges`)
     rose past 360°, or past what it was in ``mesh`` where it was over 360° already, go back
     as well, in the same loop. Past a full turn the tets around the edge overlap in space
@@ -168,7 +168,6 @@ def keep_angles(mesh: TetMesh, vertices, floor_deg: float, *, unfold: bool = Tru
         mesh: the tet mesh before the fit (its positions are the ones put back).
         vertices: (V, 3) positions after the fit.
         floor_deg: degrees (method.md §7b's target, 10).
-        unfold: also keep the boundary wedges from wrapping past a full turn.
 
     Returns:
         (vertices (V, 3) float64, number of vertices put back). Terminates: a tet whose
@@ -179,9 +178,8 @@ def keep_angles(mesh: TetMesh, vertices, floor_deg: float, *, unfold: bool = Tru
     V = np.array(vertices, dtype=np.float64)
     T = np.asarray(mesh.tets)
     floor = min(float(floor_deg), float(np.nanmin(mesh.dihedral_angles())))
-    if unfold:
-        _, wedge_of, fan_of = ridge_index(mesh, fans=True)
-        limit = np.maximum(wedge_of(mesh), 360.0)
+    _, wedge_of, fan_of = ridge_index(mesh, fans=True)
+    limit = np.maximum(wedge_of(mesh), 360.0)
     moved = np.any(V != V0, axis=1)
     put_back = 0
     while moved.any():
@@ -189,8 +187,7 @@ def keep_angles(mesh: TetMesh, vertices, floor_deg: float, *, unfold: bool = Tru
         local = TetMesh(V.copy(), T[cand], validate=False)  # TetMesh freezes what it gets
         ang = local.dihedral_angles().min(axis=1)
         bad = cand[~(ang >= floor) | (local.signed_volumes() <= 0)]  # nan (degenerate) and inverted are bad
-        if unfold:
-            bad = np.union1d(bad, fan_of(wedge_of(TetMesh(V.copy(), T, validate=False)) > limit))
+        bad = np.union1d(bad, fan_of(wedge_of(TetMesh(V.copy(), T, validate=False)) > limit))
         back = np.unique(T[bad])
         back = back[moved[back]]
         if len(back) == 0:
@@ -205,7 +202,7 @@ def keep_unfolded(mesh: TetMesh, vertices) -> tuple[np.ndarray, int]:
     """:func:`keep_angles` without an angle floor: the moves that wrap a boundary edge's
     tets past a full turn (or further past it), or that invert or flatten a tet, are put
     back. Returns (vertices (V, 3) float64, number of vertices put back)."""
-    return keep_angles(mesh, vertices, 0.0, unfold=True)
+    return keep_angles(mesh, vertices, 0.0)
 
 
 def lift_pits(mesh: TetMesh, config: PolishConfig) -> tuple[np.ndarray, int]:
