@@ -286,11 +286,16 @@ class TetGaussians:
     def from_state_dict(cls, d: dict, *, device="cpu") -> "TetGaussians":
         obj = cls.__new__(cls)
         obj.device = torch.device(device)
-        obj.s = float(d["s"])
-        obj.kappa_clamp = tuple(d["kappa_clamp"])
-        obj.scale_factor = float(d["scale_factor"])
-        obj.free_opacity = bool(d["free_opacity"])
-        for k in cls._TENSORS:
-            t = d[k].to(obj.device)
-            setattr(obj, k, t if k == "tets" else torch.nn.Parameter(t.clone()))
+        obj.load_state_dict(d)
         return obj
+
+    def load_state_dict(self, d: dict) -> None:
+        """Become the model :meth:`state_dict` saved, in place, on this model's device (new
+        parameters: optimisers built on the old ones no longer apply)."""
+        self.s = float(d["s"])
+        self.kappa_clamp = tuple(d["kappa_clamp"])
+        self.scale_factor = float(d["scale_factor"])
+        self.free_opacity = bool(d["free_opacity"])
+        for k in self._TENSORS:
+            t = d[k].to(self.device)
+            setattr(self, k, t if k == "tets" else torch.nn.Parameter(t.clone()))

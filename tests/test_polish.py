@@ -153,7 +153,11 @@ def test_keep_unfolded_puts_back_the_moves_that_wrap_a_fan_past_a_full_turn(rng)
                                  dict(pit_depth=-0.1), dict(pit_floor=1.0), dict(after_steps=-1),
                                  dict(after_volume_fraction=1.0), dict(after_angle_floor=-1.0),
                                  dict(after_angle_floor=90.0), dict(after_angle_floor=True),
-                                 dict(w_prior=-0.1), dict(w_prior=float("inf"))])
+                                 dict(w_prior=-0.1), dict(w_prior=float("inf")), dict(refine_bend=(60.0, 25.0)),
+                                 dict(refine_bend=(25.0,)), dict(refine_bend=(-1.0, 60.0)),
+                                 dict(refine_bend=(25.0, 181.0)), dict(refine_bend=(True, 60.0)),
+                                 dict(refine_factor=0.0), dict(refine_factor=1.5), dict(refine_keep_deg=-1.0),
+                                 dict(refine_keep_deg=90.0)])
 def test_polish_settings_are_checked(bad):
     with pytest.raises(ValueError, match="PolishConfig"):
         PolishConfig(**bad)
@@ -254,3 +258,92 @@ def test_the_quality_bench_checks_the_element_angles_too():
         t = _targets(row, _ratios(row))
         assert t["worst_dihedral_ge_10"] == (worst >= 10.0) and t["mean_dihedral_ge_40"] == (mean >= 40.0)
         assert t["exact_genus"] and t["normal_consistency_ge_hull"]
+
+
+def _bends_by_brute_force(mesh: TetMesh, lo: float, hi: float) -> np.ndarray:
+    """Reference for bend_tets: every pair of boundary faces sharing an edge (and no third
+    face on it), their outward normals' angle, one pair at a time."""
+    faces, owner = mesh.boundary_faces(), mesh.boundary_face_tets()
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    normal = [np.cross(V[f[1]] - V[f[0]], V[f[2]] - V[f[0]]) for f in faces]
+    by_edge = {}
+    for k, f in enumerate(faces):
+        for a, b in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0])):
+            by_edge.setdefault((min(a, b), max(a, b)), []).append(k)
+    marked = np.zeros(mesh.num_tets, bool)
+    for pair in by_edge.values():
+        if len(pair) != 2:
+            continue
+        n1, n2 = normal[pair[0]], normal[pair[1]]
+        deg = np.degrees(np.arccos(np.clip(n1 @ n2 / np.linalg.norm(n1) / np.linalg.norm(n2), -1.0, 1.0)))
+        if lo < deg < hi:
+            marked[owner[pair]] = True
+    return marked
+
+
+def test_bend_tets_finds_the_edge_a_fan_bends_at():
+    """A fan of 230 degrees round the z-axis edge: its two end faces there meet at 180 - 230
+    = -50 degrees, i.e. their normals 50 degrees apart; every other boundary edge of the fan
+    is flat (0), a cap's (90), between sides (115) or a side's against an end (140)."""
+    from holowarp.stages.polish import bend_tets
+    from oracles import edge_fan
+
+    mesh, owner = edge_fan([(0, 100), (100, 230)])
+    marked = bend_tets(mesh, 45.0, 55.0)
+    at_axis = np.flatnonzero(np.all(np.isin(mesh.tets, [0, 1]).sum(1, keepdims=True) == 2, axis=1))
+    # The axis's own tets are one per sector ([0, p, q, 1]); both hold an end face.
+    assert np.array_equal(np.flatnonzero(marked), at_axis) and len(at_axis) == 2
+    assert set(owner[marked]) == {0, 1}
+    assert not bend_tets(mesh, 55.0, 85.0).any() and not bend_tets(mesh, 0.0, 45.0)[at_axis].any()
+    for lo, hi in ((0.0, 180.0), (45.0, 55.0), (85.0, 95.0), (100.0, 180.0), (1.0, 60.0)):
+        assert np.array_equal(bend_tets(mesh, lo, hi), _bends_by_brute_force(mesh, lo, hi)), (lo, hi)
+
+
+def test_bend_tets_matches_a_brute_force_reference_on_a_jittered_sphere(grown_sphere, rng):
+    from holowarp.stages.polish import bend_tets
+
+    _, mesh = grown_sphere
+    b = np.unique(mesh.boundary_faces())
+    V = np.array(mesh.vertices)
+    V[b] *= rng.uniform(0.9, 1.1, size=(len(b), 1))
+    jittered = mesh.with_vertices(V)
+    for lo, hi in ((5.0, 30.0), (25.0, 60.0), (0.0, 180.0)):
+        ours = bend_tets(jittered, lo, hi)
+        assert ours.any() and np.array_equal(ours, _bends_by_brute_force(jittered, lo, hi)), (lo, hi)
+
+
+def _boundary_area(m: TetMesh) -> float:
+    V, f = np.asarray(m.vertices), m.boundary_faces()
+    return 0.5 * float(np.linalg.norm(np.cross(V[f[:, 1]] - V[f[:, 0]], V[f[:, 2]] - V[f[:, 0]]), axis=1).sum())
+
+
+def test_refine_bends_splits_the_bent_tets_and_keeps_the_solid(grown_sphere, rng):
+    from holowarp.refine import edge_table
+    from holowarp.stages.polish import bend_tets, refine_bends
+    from oracles import min_dihedral_deg
+
+    _, mesh = grown_sphere
+    b = np.unique(mesh.boundary_faces())
+    V = np.array(mesh.vertices)
+    V[b[rng.choice(len(b), 6, replace=False)]] *= 1.15  # six spikes: the only sharp bends
+    spiky = mesh.with_vertices(V)
+    cfg = PolishConfig(refine_bend=(25.0, 60.0), refine_factor=0.75)
+    marked = bend_tets(spiky, 25.0, 60.0)
+    assert 0 < marked.sum() < 0.2 * spiky.num_tets
+    V2, T2, parent, ends, info = refine_bends(spiky, cfg)
+    refined = TetMesh(V2, T2)
+    assert info["marked"] == marked.sum() and info["tets_before"] == spiky.num_tets
+    assert info["tets_after"] == len(T2) > spiky.num_tets and len(ends) == len(V2) - len(V)
+    assert np.array_equal(V2[: len(V)], V) and np.allclose(V2[len(V):], 0.5 * (V2[ends[:, 0]] + V2[ends[:, 1]]))
+    # Conforming and positive; the solid and its boundary are the same point set.
+    assert refined.manifold()["manifold"] and refined.num_components() == 1 and min_dihedral_deg(V2, T2).min() > 0
+    assert np.isclose(refined.volume(), spiky.volume(), rtol=1e-9)
+    assert np.isclose(_boundary_area(refined), _boundary_area(spiky), rtol=1e-9)
+    # Every child of a marked tet is down to the target.
+    _, _, length, longest = edge_table(V2, T2)
+    assert np.all(length[longest[marked[parent]]] <= info["target"] * (1 + 1e-9))
+    _, _, length0, longest0 = edge_table(V, spiky.tets)
+    assert np.isclose(info["target"], 0.75 * np.median(length0[longest0[marked]]))
+    # Off, or nothing bent that much: nothing to do.
+    assert refine_bends(spiky, PolishConfig(refine_bend=None)) is None
+    assert refine_bends(mesh, PolishConfig(refine_bend=(89.0, 90.0))) is None

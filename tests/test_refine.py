@@ -108,6 +108,7 @@ def test_surfels_follow_a_refinement_and_the_field_is_unchanged():
         model.apply_refine(V, T, parent[:-1], ends)
     with pytest.raises(ValueError, match="midpoints"):
         model.apply_refine(V[:-1], T, parent, ends)
+    saved = model.state_dict()
     model.apply_refine(V, T, parent, ends)
     assert model.num_tets == len(T) and model.num_vertices == len(V)
     np.testing.assert_allclose(model.phi.detach().numpy(), V @ a + b, rtol=0, atol=2e-5)
@@ -120,6 +121,15 @@ def test_surfels_follow_a_refinement_and_the_field_is_unchanged():
     ratio = radius(V, T) / radius(m.vertices, m.tets)[parent]
     np.testing.assert_allclose(np.exp(model.log_scales.detach().numpy()),
                                np.exp(old["log_scales"].numpy()[parent]) * ratio[:, None], rtol=1e-5)
+    # Loading the saved state undoes the refinement in place (the finish's way back when §7b
+    # cannot mend the refined mesh), into fresh parameters.
+    model.load_state_dict(saved)
+    assert model.num_tets == m.num_tets and model.num_vertices == m.num_vertices
+    for k in TetGaussians._TENSORS:
+        assert torch.equal(getattr(model, k).detach(), saved[k]), k
+    assert isinstance(model.vertices, torch.nn.Parameter) and not isinstance(model.tets, torch.nn.Parameter)
+    model.vertices.data += 1.0  # a copy, not the saved tensor
+    assert not torch.equal(model.vertices.detach(), saved["vertices"])
 
 
 def test_refine_near_surface_follows_the_config():

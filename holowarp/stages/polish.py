@@ -30,7 +30,10 @@ tighter floor), since §7b's boundary flips and cap deletions undo part of the f
 moves that would take a tet's smallest dihedral angle below §7b's worst (or below 10°,
 §7b's target, where §7b did better) are then put back (:func:`keep_angles`).
 
-Before the fit, :func:`lift_pits` lifts the one-tet pits (a boundary vertex with three
+Before the fit, :func:`refine_bends` bisects the tets where the boundary turns sharply
+(``PolishConfig.refine_bend``, which has the measurements), so that the fits have vertices to
+bend the surface with where the main loop's facets are too coarse (horns, ears, handles); the
+surfels follow (:meth:`holowarp.tetgs.TetGaussians.apply_refine`). Then :func:`lift_pits` lifts the one-tet pits (a boundary vertex with three
 boundary neighbours, most of an edge below their plane) that the main loop leaves on some
 runs; no silhouette sees them, and the deepest set the Hausdorff distance (bob: 0.028).
 
@@ -69,7 +72,7 @@ import torch
 from holowarp.config import PolishConfig
 from holowarp.tetmesh import TetMesh, ridge_index
 
-__all__ = ["keep_angles", "keep_unfolded", "lift_pits", "polish_silhouettes"]
+__all__ = ["bend_tets", "keep_angles", "keep_unfolded", "lift_pits", "polish_silhouettes", "refine_bends"]
 
 
 def _boundary_graph(mesh: TetMesh):
@@ -337,3 +340,56 @@ def _view_loss(xb, faces, dataset, v: int, mask, prior=None, w_prior: float = 0.
     if prior is not None and w_prior > 0:
         loss = loss + w_prior * covered_prior_loss(prior, out["normal"], out["alpha"])
     return loss
+
+
+
+def bend_tets(mesh: TetMesh, lo_deg: float, hi_deg: float = 180.0) -> np.ndarray:
+    """(M,) bool: the tets owning a boundary face that meets a neighbouring boundary face at
+    an edge bent by more than ``lo_deg`` and less than ``hi_deg`` degrees (the angle between
+    the two faces' outward normals: 0 flat, 90 a box's edge). Edges of a non-manifold
+    boundary (three or more faces) are skipped."""
+    faces = np.asarray(mesh.boundary_faces())
+    owner = np.asarray(mesh.boundary_face_tets())
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    n = np.cross(V[faces[:, 1]] - V[faces[:, 0]], V[faces[:, 2]] - V[faces[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    half = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    fid = np.tile(np.arange(len(faces)), 3)
+    order = np.lexsort((half[:, 1], half[:, 0]))
+    half, fid = half[order], fid[order]
+    same = np.all(half[1:] == half[:-1], axis=1)
+    pair = np.flatnonzero(same)
+    pair = pair[~np.r_[False, same[:-1]][pair] & ~np.r_[same[1:], False][pair]]  # exactly two faces
+    a, b = fid[pair], fid[pair + 1]
+    c = np.einsum("ij,ij->i", n[a], n[b])
+    bent = (c < np.cos(np.radians(lo_deg))) & (c > np.cos(np.radians(hi_deg)))
+    marked = np.zeros(mesh.num_tets, bool)
+    marked[owner[a[bent]]] = True
+    marked[owner[b[bent]]] = True
+    return marked
+
+
+def refine_bends(mesh: TetMesh, config: PolishConfig):
+    """Bisect the tets at ``mesh``'s sharply turning boundary edges (:func:`bend_tets` with
+    ``config.refine_bend``) until their longest edge is at most ``config.refine_factor``
+    times the median of their longest edges (:func:`holowarp.refine.bisect_longest_edges`:
+    conforming, every child positive, the boundary unchanged as a point set).
+
+    Returns:
+        ``(vertices (N', 3), tets (K, 4), parent (K,), ends (N' - N, 2), info)`` as
+        :meth:`holowarp.tetgs.TetGaussians.apply_refine` takes them, or None when off or when
+        no edge bends that much. ``info``: ``marked`` tets, ``target`` edge (scene units),
+        ``tets_before``, ``tets_after``.
+    """
+    if config.refine_bend is None or mesh.num_tets == 0:
+        return None
+    from holowarp.refine import bisect_longest_edges, edge_table
+
+    marked = bend_tets(mesh, *config.refine_bend)
+    if not marked.any():
+        return None
+    _, _, length, longest = edge_table(mesh.vertices, mesh.tets)
+    target = float(config.refine_factor * np.median(length[longest[marked]]))
+    V, T, parent, ends = bisect_longest_edges(mesh.vertices, mesh.tets, marked, target)
+    info = {"marked": int(marked.sum()), "target": target, "tets_before": mesh.num_tets, "tets_after": int(len(T))}
+    return V, T, parent, ends, info
