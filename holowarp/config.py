@@ -1006,20 +1006,25 @@ class PolishConfig:
             that wrap a boundary edge's tets past a full turn go back as well
             (:func:`holowarp.stages.polish.keep_unfolded`, also run after the first fit).
         w_prior: weight of the normal-map prior in both fits, when the dataset has normal
-            maps: the mean ``1 - cos`` between the boundary's rendered normals and the map
-            over the pixels both cover, added to each view's mask term (0: masks alone).
-            Finishing the quality suite's seed-0 runs again from their checkpoints (fast,
-            128², 0 -> 0.02; Chamfer-L1 / F@0.005 / normal consistency / Hausdorff): bob
-            0.002233 -> 0.002200 / 0.9889 -> 0.9897 / 0.9922 -> 0.9931 (hull 0.9927) /
-            0.0083 -> 0.0081; spot 0.002516 -> 0.002474 / 0.9656 -> 0.9690 / 0.9833 ->
-            0.9844 / 0.0152 -> 0.0148; fandisk 0.00451 -> 0.00420 / 0.762 -> 0.783 / 0.9699
-            -> 0.9731 / 0.0450 -> 0.0411; mug 0.02190 -> 0.02174 / 0.568 -> 0.594 / 0.9632
-            -> 0.9660 / 0.2748 -> 0.2733 (hull 0.2746); bowl, plate likewise all better
-            (plate's IoU -0.001); star neutral (F@0.005 0.9022 -> 0.9005, normal consistency
-            0.9837 -> 0.9853); the dented box better on all but F@0.005, 0.588 -> 0.558
-            (its flat faces move by a fraction of τ). Normal consistency rose on all eight.
-            At 0.05 the gains were larger on five objects, but the dented box's F@0.005
-            fell to 0.518 and the star's to 0.889; at 0.2 spot's fell to 0.959.
+            maps: the mean chord ``sqrt(2 (1 - cos))`` between the boundary's rendered normals
+            and the map over the pixels both cover, added to each view's mask term (0: masks
+            alone). The chord grows with the angle itself: the dented box's flat faces, which
+            no silhouette sees inside their edges, sat bulged by up to 0.0066 (a tilt of
+            about 0.015 rad, where ``1 - cos`` is 1e-4 and pulls nothing) while their
+            silhouettes matched the masks to 0.03 px. Finishing the quality suite's seed-0
+            runs again from their checkpoints (fast, 128²; ``1 - cos`` at 0.02 -> the chord
+            at 0.008; Chamfer-L1 / F@0.005 / normal consistency; hull in brackets): dented
+            box 0.00530 -> 0.00528 / 0.559 -> 0.581 (0.595) / 0.9914 -> 0.9917; fandisk
+            0.00425 -> 0.00411 / 0.778 -> 0.798 / 0.9753 -> 0.9746; plate 0.00225 -> 0.00218
+            (0.00229) / 0.974 -> 0.976 / 0.9578 -> 0.9584; bob 0.00217 -> 0.00215 / 0.9902 ->
+            0.9903 / 0.9939 -> 0.9945; spot 0.00245 -> 0.00244 / 0.9685 -> 0.9682 / 0.9867
+            -> 0.9870; star 0.00307 -> 0.00308 / 0.897 -> 0.895; mug and bowl within 0.5%
+            (bowl's normal consistency 0.9740 -> 0.9733). Every worst dihedral angle stayed
+            at or above 10° (bob 14.2° -> 10.0°, dented box 10.8° -> 10.4°). The chord at
+            0.003 took the dented box's F@0.005 to 0.600 but §7b's worst angle to 9.6°
+            (at 0.005: 0.591, 9.8°). Before the chord, ``1 - cos`` from 0 to 0.02 had raised
+            normal consistency on all eight objects (at 0.05 the dented box's F@0.005 fell
+            to 0.518).
         refine_bend, refine_factor: before the first fit, the tets holding a boundary face
             that meets a neighbour at a boundary edge bent by ``refine_bend = (lo, hi)``
             degrees (the angle between the two faces' normals, ``lo < bend < hi``) are
@@ -1031,7 +1036,8 @@ class PolishConfig:
             leaves out the creases the facets already follow (a box's 90° edges), which gain
             nothing and cost the worst dihedral angle. ``None``: off. Finishing the quality
             suite's seed-0 runs again from their checkpoints (fast, 128²; off -> (25, 60) at
-            0.75; hull in brackets), normal consistency / F@0.005 / tets: spot 0.9846 ->
+            0.75, with the prior's ``1 - cos`` at 0.02 of the time; hull in brackets), normal
+            consistency / F@0.005 / tets: spot 0.9846 ->
             0.9867 (0.9864) / 0.970 -> 0.969 / 27.5k -> 35.8k; bob 0.9934 -> 0.9939 / 0.9902
             -> 0.9902 / 31.4k -> 34.8k; fandisk 0.9734 -> 0.9753 / 0.783 -> 0.778 (0.709) /
             32k -> 43k; star 0.9861 -> 0.9872 / 0.906 -> 0.897 (0.877) / 28k -> 36k; plate
@@ -1044,12 +1050,13 @@ class PolishConfig:
             under the hull's; a factor of 0.5 took spot to 67k tets.
         refine_keep_deg: the bisection is kept only when the element improvement (§7b)
             still reaches this worst dihedral angle on the refined mesh (degrees; 10, §7b's
-            target); else the polish and §7b run again without it
-            (:func:`holowarp.report.finish_run`; ``report.json`` -> ``polish.refined.kept``).
+            target); else the polish and §7b run again without it and the mesh with the
+            better worst angle is kept (:func:`holowarp.report.finish_run`; ``report.json``
+            -> ``polish.refined``: ``kept``, ``min_dihedral_worst`` and ``without``).
             Bisecting splits the slivers §7b has yet to mend into several as flat, and on
             a coarse mesh, where a tenth of the tets sit at such bends (a torus at 40 px),
-            §7b's worst angle fell from 17.0° to 3.8°; at 128² every suite object and lego
-            kept it (worst angles 10.8-17.0°).
+            §7b's worst angle fell from 17.0° to 3.8°; at 128² every suite object (seed 0)
+            and lego kept it (§7b's worst angle on the refined meshes 10.2-19.7°).
     """
 
     enabled: bool = True
@@ -1064,7 +1071,7 @@ class PolishConfig:
     after_steps: int = 40
     after_volume_fraction: float = 0.9
     after_angle_floor: float | None = 10.0
-    w_prior: float = 0.02
+    w_prior: float = 0.008
     refine_bend: tuple[float, float] | None = (25.0, 60.0)
     refine_factor: float = 0.75
     refine_keep_deg: float = 10.0

@@ -135,12 +135,20 @@ def prior_error(prior: torch.Tensor, *normals: torch.Tensor) -> tuple[torch.Tens
     return err, length > 0.5
 
 
-def covered_prior_loss(prior: torch.Tensor, normal: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+def covered_prior_loss(prior: torch.Tensor, normal: torch.Tensor, alpha: torch.Tensor, *,
+                       chord: bool = False) -> torch.Tensor:
     """Mean ``1 - cos`` between a rendered ``normal`` map (H, W, 3) and the normal map
     ``prior`` (H, W, 3) over the pixels the render covers (``alpha`` (H, W) > 0.5) where the
     prior holds a normal; 0 where there is no such pixel. Written without a boolean gather
-    (a data-dependent shape is a host sync); the mesh blocks and the polish use it."""
+    (a data-dependent shape is a host sync); the mesh blocks and the polish use it.
+
+    ``chord``: the mean chord ``|n/|n| - p/|p|| = sqrt(2 (1 - cos))`` instead (plus 1e-6
+    under the root, so that it is smooth where the normals agree). It grows linearly with the
+    angle between them, so a surface tilted by a hundredth of a radian is still pulled back
+    (``1 - cos`` is 5e-5 there, and its gradient vanishes with the tilt)."""
     err, has = prior_error(prior, normal)
+    if chord:
+        err = torch.sqrt(2.0 * err.clamp_min(0.0) + 1e-6)
     sel = ((alpha > 0.5) & has).to(err.dtype)
     return (err * sel).sum() / sel.sum().clamp_min(1.0)
 

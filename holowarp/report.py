@@ -300,7 +300,9 @@ def _polish_and_improve(model, clean, dataset, config, device, state):
     still reaches ``PolishConfig.refine_keep_deg`` on the refined mesh: on a coarse mesh
     (a 40-pixel run, where a tenth of the tets sit at such bends) the bisection multiplies
     the slivers §7b has to mend, and §7b's worst angle fell from 17.0° to 3.8°. Then both run
-    again without it, from the model as cleanup left it, and ``refined.kept`` says so."""
+    again without it, from the model as cleanup left it, and the better of the two meshes (by
+    §7b's worst angle; ``refined.min_dihedral_worst`` with the bisection, ``refined.without``
+    without it) is kept; ``refined.kept`` says which."""
     from dataclasses import replace
 
     from holowarp.progress import say
@@ -319,10 +321,16 @@ def _polish_and_improve(model, clean, dataset, config, device, state):
         return clean, polish_info, improve_info
     say(f"the bisection at sharp bends left §7b at {worst:.1f}° (under {p.refine_keep_deg:g}°): "
         "polishing and improving again without it", progress=False)
+    first = (clean, polish_info, improve_info, model.state_dict())
     model.load_state_dict(snapshot)
     plain = replace(config, polish=replace(p, refine_bend=None))
     clean, polish_info = _polish(model, cleaned, dataset, plain, device, state)
     clean, improve_info = _improve(model, clean, dataset, plain, device, state)
+    refined["without"] = improve_info["after"]["min_dihedral_worst"]
+    if refined["without"] < worst:  # the refined mesh was the better of two misses
+        refined["kept"] = True
+        model.load_state_dict(first[3])
+        return first[:3]
     polish_info["refined"] = refined
     return clean, polish_info, improve_info
 

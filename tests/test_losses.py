@@ -197,3 +197,29 @@ def test_prior_error_sums_one_minus_cos_per_map_and_marks_where_the_prior_holds_
         num[k] = -(cos(prior, up)[i, j] - cos(prior, dn)[i, j]) / (2 * h)
     np.testing.assert_allclose(g[i, j].numpy(), num, rtol=1e-3, atol=1e-5)
     assert torch.count_nonzero(g).item() == 3  # only that pixel's normal moves
+
+
+def test_covered_prior_chord_is_the_distance_between_unit_normals_and_pulls_small_tilts(rng):
+    from holowarp.losses import covered_prior_loss
+
+    prior = rng.normal(size=(10, 8, 3))
+    prior[rng.random((10, 8)) < 0.25] = 0.0  # no normal there
+    n = rng.normal(size=(10, 8, 3))
+    alpha = rng.uniform(0.0, 1.0, (10, 8))
+    unit = lambda u: u / np.maximum(np.linalg.norm(u, axis=-1, keepdims=True), 1e-300)  # noqa: E731
+    sel = (alpha > 0.5) & (np.linalg.norm(prior, axis=-1) > 0.5)
+    chord = np.sqrt(np.linalg.norm(unit(n) - unit(prior), axis=-1) ** 2 + 1e-6)  # float64 reference
+    nt = torch.tensor(n, dtype=torch.float32, requires_grad=True)
+    got = covered_prior_loss(torch.tensor(prior, dtype=torch.float32), nt, torch.tensor(alpha, dtype=torch.float32),
+                             chord=True)
+    assert float(got.detach()) == pytest.approx(chord[sel].mean(), rel=1e-4)
+    # Near agreement the chord is the angle: a tilt of 0.01 rad costs 0.01, where 1 - cos
+    # costs 5e-5; its gradient stays at about one per radian.
+    z = np.zeros((1, 1, 3)); z[..., 2] = 1.0
+    t = torch.tensor([[[np.sin(0.01), 0.0, np.cos(0.01)]]], dtype=torch.float64, requires_grad=True)
+    one = torch.ones((1, 1), dtype=torch.float64)
+    loss = covered_prior_loss(torch.tensor(z), t, one, chord=True)
+    assert float(loss.detach()) == pytest.approx(0.01, rel=1e-2)
+    assert float(covered_prior_loss(torch.tensor(z), t.detach(), one)) == pytest.approx(1 - np.cos(0.01), rel=1e-6)
+    (g,) = torch.autograd.grad(loss, t)
+    assert float(g[0, 0, 0]) == pytest.approx(1.0, rel=0.05)

@@ -206,7 +206,7 @@ def test_a_one_tet_pit_is_put_back_on_its_rim(z, flattened):
     np.testing.assert_array_equal(V[:4], mesh.vertices[:4])
 
 
-def test_polish_normal_prior_adds_the_mean_cosine_error_of_a_numpy_reference(grown_sphere):
+def test_polish_normal_prior_adds_the_mean_chord_of_a_numpy_reference(grown_sphere):
     from dataclasses import replace
 
     import torch
@@ -231,7 +231,7 @@ def test_polish_normal_prior_adds_the_mean_cosine_error_of_a_numpy_reference(gro
     p = with_n.normals[v].astype(np.float64)
     sel = (a > 0.5) & (np.linalg.norm(p, axis=-1) > 0.5)
     cos = (n * p).sum(-1)[sel] / (np.linalg.norm(n, axis=-1)[sel] * np.linalg.norm(p, axis=-1)[sel])
-    ref = np.abs(a - ds.masks[v]).mean() + w * np.mean(1.0 - cos)
+    ref = np.abs(a - ds.masks[v]).mean() + w * np.mean(np.sqrt(2.0 * (1.0 - cos) + 1e-6))
     assert sel.sum() > 100 and 0.0 < np.mean(1.0 - cos) < 0.2
     assert got == pytest.approx(ref, rel=1e-4)
     assert float(_view_loss(xb, faces, with_n, v, mask, None, w)) == pytest.approx(np.abs(a - ds.masks[v]).mean(), rel=1e-5)
@@ -347,3 +347,50 @@ def test_refine_bends_splits_the_bent_tets_and_keeps_the_solid(grown_sphere, rng
     # Off, or nothing bent that much: nothing to do.
     assert refine_bends(spiky, PolishConfig(refine_bend=None)) is None
     assert refine_bends(mesh, PolishConfig(refine_bend=(89.0, 90.0))) is None
+
+
+@pytest.mark.parametrize("with_deg, without_deg, kept", [(12.0, None, True), (3.8, 17.0, False), (9.8, 7.1, True)])
+def test_the_finish_keeps_the_bisection_only_where_improve_still_reaches_its_target(monkeypatch, with_deg,
+                                                                                    without_deg, kept):
+    """report._polish_and_improve with the polish and §7b replaced by stand-ins whose worst
+    angle is given: the refined mesh stays when §7b reaches 10° on it, else the polish and
+    §7b run again without the bisection and the better of the two meshes is kept."""
+    import holowarp.report as report
+
+    class Model:
+        def __init__(self):
+            self.state, self.loads = "cleaned", []
+
+        def state_dict(self):
+            return self.state
+
+        def load_state_dict(self, d):
+            self.loads.append(d)
+            self.state = d
+
+    calls = []
+
+    def polish(model, clean, dataset, config, device, state):
+        bisect = config.polish.refine_bend is not None
+        calls.append(("polish", bisect, clean))
+        model.state = "refined" if bisect else "plain"
+        info = {"tets_before": 10, "tets_after": 20} if bisect else None
+        return f"{model.state} mesh", {"refined": info}
+
+    def improve(model, clean, dataset, config, device, state):
+        calls.append(("improve", clean))
+        worst = with_deg if clean == "refined mesh" else without_deg
+        return f"improved {clean}", {"after": {"min_dihedral_worst": worst}}
+
+    monkeypatch.setattr(report, "_polish", polish)
+    monkeypatch.setattr(report, "_improve", improve)
+    model, config = Model(), preset("fast")
+    mesh, pinfo, iinfo = report._polish_and_improve(model, "cleaned mesh", None, config, "cpu", None)
+    ref = pinfo["refined"]
+    assert ref["kept"] is kept and ref["min_dihedral_worst"] == with_deg
+    assert ref.get("without") == without_deg and (len(calls) == 2) == (without_deg is None)
+    if without_deg is not None:  # the second pass starts from the model as cleanup left it
+        assert calls[2] == ("polish", False, "cleaned mesh") and model.loads[0] == "cleaned"
+    assert mesh == ("improved refined mesh" if kept else "improved plain mesh")
+    assert model.state == ("refined" if kept else "plain")
+    assert iinfo["after"]["min_dihedral_worst"] == (with_deg if kept else without_deg)

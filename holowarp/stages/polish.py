@@ -9,7 +9,7 @@ outside the ground truth on the silhouette-visible parts, where the visual hull 
 vertices to the masks (and the normal maps, where the dataset has them), averaging
 ``PolishConfig.views`` training views per step, with Adam and a cosine-decayed step:
 
-    L = mean_views (mean_pixels |alpha - mask| + w_prior * mean_covered (1 - cos(n, n_map)))
+    L = mean_views (mean_pixels |alpha - mask| + w_prior * mean_covered |n/|n| - n_map|)
         + smooth * mean_edges |d_i - d_j|^2 / h^2
 
 ``alpha`` is the boundary's anti-aliased silhouette (:func:`holowarp.ops.rasterize_mesh`),
@@ -329,16 +329,17 @@ class _Masks:
 
 
 def _view_loss(xb, faces, dataset, v: int, mask, prior=None, w_prior: float = 0.0) -> torch.Tensor:
-    """``mean |alpha - mask|`` of view ``v``, plus ``w_prior`` times the mean ``1 - cos``
-    between the rendered normals and the normal map ``prior`` (H, W, 3) over the pixels the
-    boundary covers (alpha > 0.5) where the map holds a normal (when given and w_prior > 0)."""
+    """``mean |alpha - mask|`` of view ``v``, plus ``w_prior`` times the mean chord
+    ``sqrt(2 (1 - cos))`` between the rendered normals and the normal map ``prior`` (H, W, 3)
+    over the pixels the boundary covers (alpha > 0.5) where the map holds a normal (when
+    given and w_prior > 0; :func:`holowarp.losses.covered_prior_loss` with ``chord``)."""
     from holowarp.losses import covered_prior_loss
     from holowarp.ops import rasterize_mesh
 
     out = rasterize_mesh(xb, faces, dataset.viewmats[v], dataset.K[v], dataset.width, dataset.height)
     loss = (out["alpha"] - mask).abs().mean()
     if prior is not None and w_prior > 0:
-        loss = loss + w_prior * covered_prior_loss(prior, out["normal"], out["alpha"])
+        loss = loss + w_prior * covered_prior_loss(prior, out["normal"], out["alpha"], chord=True)
     return loss
 
 
