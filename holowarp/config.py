@@ -1009,9 +1009,12 @@ class PolishConfig:
             maps: the mean chord ``sqrt(2 (1 - cos))`` between the boundary's rendered normals
             and the map over the pixels both cover, added to each view's mask term (0: masks
             alone). The chord grows with the angle itself: the dented box's flat faces, which
-            no silhouette sees inside their edges, sat bulged by up to 0.0066 (a tilt of
-            about 0.015 rad, where ``1 - cos`` is 1e-4 and pulls nothing) while their
-            silhouettes matched the masks to 0.03 px. Finishing the quality suite's seed-0
+            no silhouette sees inside their edges, sat bulged or dipped by up to 0.007 at
+            their centres (tilts of about 0.015 rad, where ``1 - cos`` is 1e-4 and pulls
+            nothing) while their silhouettes matched the masks to 0.03 px. With the chord the
+            +x face's dip went from 0.0036 to 0.0020; the -x face's bulge (0.007) stayed,
+            perhaps held by the volume floor (a 0.007 move is a fifth of the tets' thickness
+            there; not established). Finishing the quality suite's seed-0
             runs again from their checkpoints (fast, 128²; ``1 - cos`` at 0.02 -> the chord
             at 0.008; Chamfer-L1 / F@0.005 / normal consistency; hull in brackets): dented
             box 0.00530 -> 0.00528 / 0.559 -> 0.581 (0.595) / 0.9914 -> 0.9917; fandisk
@@ -1036,13 +1039,13 @@ class PolishConfig:
             leaves out the creases the facets already follow (a box's 90° edges), which gain
             nothing and cost the worst dihedral angle. ``None``: off. Finishing the quality
             suite's seed-0 runs again from their checkpoints (fast, 128²; off -> (25, 60) at
-            0.75, with the prior's ``1 - cos`` at 0.02 of the time; hull in brackets), normal
-            consistency / F@0.005 / tets: spot 0.9846 ->
-            0.9867 (0.9864) / 0.970 -> 0.969 / 27.5k -> 35.8k; bob 0.9934 -> 0.9939 / 0.9902
-            -> 0.9902 / 31.4k -> 34.8k; fandisk 0.9734 -> 0.9753 / 0.783 -> 0.778 (0.709) /
-            32k -> 43k; star 0.9861 -> 0.9872 / 0.906 -> 0.897 (0.877) / 28k -> 36k; plate
-            0.9540 -> 0.9578 (0.9605) / 0.973 -> 0.974 / 7.9k -> 21.3k; dented box 0.9905 ->
-            0.9914 / 0.560 -> 0.559 / 79k -> 85k; mug 0.9669 -> 0.9690 / 0.596 -> 0.598;
+            0.75, with the prior as it then was, ``1 - cos`` at 0.02; hull in brackets),
+            normal consistency / F@0.005 / tets: spot 0.9846 -> 0.9867 (0.9864) / 0.970 ->
+            0.969 / 27.5k -> 35.8k; bob 0.9934 -> 0.9939 / 0.9902 -> 0.9902 / 31.4k -> 34.8k;
+            fandisk 0.9734 -> 0.9753 / 0.783 -> 0.778 (0.709) / 32k -> 43k; star 0.9861 ->
+            0.9872 / 0.906 -> 0.897 (0.877) / 28k -> 36k; plate 0.9540 -> 0.9578 (0.9605) /
+            0.973 -> 0.974 / 7.9k -> 21.3k; dented box 0.9905 -> 0.9914 / 0.560 -> 0.559 /
+            79k -> 85k; mug 0.9669 -> 0.9690 / 0.596 -> 0.598;
             bowl 0.9709 -> 0.9740 / 0.580 -> 0.578. Chamfer-L1 moved by at most 2%, every
             worst dihedral angle stayed above 10° (dented box 10.7° -> 10.8°), and the finish
             took 1-12 s longer. Without the upper bound (25°, 180°) the dented box's worst
@@ -1092,7 +1095,8 @@ class PolishConfig:
         if b is not None and not (isinstance(b, (tuple, list)) and len(b) == 2
                                   and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in b)
                                   and 0.0 <= b[0] < b[1] <= 180.0):
-            raise ValueError(f"PolishConfig.refine_bend must be None or (lo, hi) degrees with 0 <= lo < hi <= 180, got {b!r}")
+            raise ValueError(f"PolishConfig.refine_bend must be None or (lo, hi) degrees with 0 <= lo < hi <= 180, "
+                             f"got {b!r}")
         if not (isinstance(self.refine_keep_deg, (int, float)) and 0.0 <= self.refine_keep_deg < 90.0):
             raise ValueError(f"PolishConfig.refine_keep_deg must be degrees in [0, 90), got {self.refine_keep_deg!r}")
         if not (isinstance(self.refine_factor, (int, float)) and 0.0 < self.refine_factor <= 1.0):

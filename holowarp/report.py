@@ -313,7 +313,9 @@ def _polish_and_improve(model, clean, dataset, config, device, state):
     clean, polish_info = _polish(model, cleaned, dataset, config, device, state)
     clean, improve_info = _improve(model, clean, dataset, config, device, state)
     refined = polish_info.get("refined") if polish_info is not None else None
-    if snapshot is None or refined is None:
+    if snapshot is None or refined is None:  # no bisection, or no §7b to judge it by
+        if refined is not None:
+            refined["kept"] = True
         return clean, polish_info, improve_info
     worst = improve_info["after"]["min_dihedral_worst"]
     refined.update(kept=bool(worst >= p.refine_keep_deg), min_dihedral_worst=worst)
