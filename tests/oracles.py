@@ -145,3 +145,9 @@ def axis_wedge(mesh, V):
     """The wedge in degrees at :func:`edge_fan`'s axis edge (vertices 0 and 1) with positions ``V``."""
     edges, wedge = mesh.with_vertices(V).boundary_wedges()
     return float(wedge[(np.sort(edges, axis=1) == [0, 1]).all(axis=1)][0])
+
+
+def surface_area(mesh) -> float:
+    """Total area of a tet mesh's boundary triangles (float64)."""
+    V, F = mesh.surface_mesh()
+    return float(0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1).sum())

@@ -312,15 +312,10 @@ def test_bend_tets_matches_a_brute_force_reference_on_a_jittered_sphere(grown_sp
         assert ours.any() and np.array_equal(ours, _bends_by_brute_force(jittered, lo, hi)), (lo, hi)
 
 
-def _boundary_area(m: TetMesh) -> float:
-    V, f = np.asarray(m.vertices), m.boundary_faces()
-    return 0.5 * float(np.linalg.norm(np.cross(V[f[:, 1]] - V[f[:, 0]], V[f[:, 2]] - V[f[:, 0]]), axis=1).sum())
-
-
 def test_refine_bends_splits_the_bent_tets_and_keeps_the_solid(grown_sphere, rng):
     from holowarp.refine import edge_table
     from holowarp.stages.polish import bend_tets, refine_bends
-    from oracles import min_dihedral_deg
+    from oracles import min_dihedral_deg, surface_area
 
     _, mesh = grown_sphere
     b = np.unique(mesh.boundary_faces())
@@ -338,7 +333,7 @@ def test_refine_bends_splits_the_bent_tets_and_keeps_the_solid(grown_sphere, rng
     # Conforming and positive; the solid and its boundary are the same point set.
     assert refined.manifold()["manifold"] and refined.num_components() == 1 and min_dihedral_deg(V2, T2).min() > 0
     assert np.isclose(refined.volume(), spiky.volume(), rtol=1e-9)
-    assert np.isclose(_boundary_area(refined), _boundary_area(spiky), rtol=1e-9)
+    assert np.isclose(surface_area(refined), surface_area(spiky), rtol=1e-9)
     # Every child of a marked tet is down to the target.
     _, _, length, longest = edge_table(V2, T2)
     assert np.all(length[longest[marked[parent]]] <= info["target"] * (1 + 1e-9))

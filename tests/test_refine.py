@@ -13,6 +13,7 @@ from holowarp.primitives import box_tetmesh
 from holowarp.refine import bisect_longest_edges, boundary_band, edge_table
 from holowarp.tetgs import TetGaussians
 from holowarp.tetmesh import TET_EDGES, TetMesh
+from oracles import surface_area
 
 
 def _ring_mesh(rng) -> TetMesh:
@@ -23,11 +24,6 @@ def _ring_mesh(rng) -> TetMesh:
     m = box_tetmesh((4, 4, 2), size=(1.0, 1.0, 0.5), cell_mask=mask)
     V = m.vertices + rng.uniform(-0.03, 0.03, m.vertices.shape)
     return TetMesh(V, m.tets)
-
-
-def _surface_area(mesh: TetMesh) -> float:
-    V, F = mesh.surface_mesh()
-    return float(0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1).sum())
 
 
 def _min_dihedral(V, T) -> float:
@@ -50,7 +46,7 @@ def test_bisection_is_conforming_and_keeps_volume_boundary_and_topology(rings):
     assert (out.genus(), out.num_components(), out.boundary_shells()) == (m.genus(), 1, m.boundary_shells()) == (1, 1, 1)
     assert out.signed_volumes().min() > 0
     assert out.volume() == pytest.approx(m.volume(), rel=1e-12)
-    assert _surface_area(out) == pytest.approx(_surface_area(m), rel=1e-12)
+    assert surface_area(out) == pytest.approx(surface_area(m), rel=1e-12)
     assert len(out.boundary_faces()) > len(m.boundary_faces())
     # Each parent's volume is the sum of its children's.
     per_parent = np.bincount(parent, weights=out.signed_volumes(), minlength=m.num_tets)

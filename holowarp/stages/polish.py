@@ -70,7 +70,7 @@ import numpy as np
 import torch
 
 from holowarp.config import PolishConfig
-from holowarp.tetmesh import TetMesh, ridge_index
+from holowarp.tetmesh import TetMesh, _row_keys, ridge_index
 
 __all__ = ["bend_tets", "keep_angles", "keep_unfolded", "lift_pits", "polish_silhouettes", "refine_bends"]
 
@@ -355,13 +355,10 @@ def bend_tets(mesh: TetMesh, lo_deg: float, hi_deg: float = 180.0) -> np.ndarray
     n = np.cross(V[faces[:, 1]] - V[faces[:, 0]], V[faces[:, 2]] - V[faces[:, 0]])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
     half = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    fid = np.tile(np.arange(len(faces)), 3)
-    order = np.lexsort((half[:, 1], half[:, 0]))
-    half, fid = half[order], fid[order]
-    same = np.all(half[1:] == half[:-1], axis=1)
-    pair = np.flatnonzero(same)
-    pair = pair[~np.r_[False, same[:-1]][pair] & ~np.r_[same[1:], False][pair]]  # exactly two faces
-    a, b = fid[pair], fid[pair + 1]
+    _, edge, count = np.unique(_row_keys(half, max(mesh.num_vertices, 1)), return_inverse=True, return_counts=True)
+    two = np.flatnonzero(count[edge] == 2)  # half-edges of edges with exactly two faces
+    fid = np.tile(np.arange(len(faces)), 3)[two][np.argsort(edge[two], kind="stable")]
+    a, b = fid[0::2], fid[1::2]
     c = np.einsum("ij,ij->i", n[a], n[b])
     bent = (c < np.cos(np.radians(lo_deg))) & (c > np.cos(np.radians(hi_deg)))
     marked = np.zeros(mesh.num_tets, bool)
