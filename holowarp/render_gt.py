@@ -12,9 +12,10 @@
 Antialiasing is stratified ``supersample x supersample`` rays per pixel (alpha is then the
 fraction of rays that hit, so silhouettes are soft); ``supersample=1`` casts exactly one ray
 through each pixel centre, which the analytic tests use. The albedo is a texture (bilinear,
-from OBJ UVs), per-vertex colours or one fixed colour. Normals are per-corner normals
-smoothed across edges whose dihedral angle is below ``crease_angle_deg`` (so sharp CAD edges
-stay sharp) or, with ``smooth_normals=False``, flat face normals.
+from OBJ UVs), per-vertex colours or one fixed colour. Normals are area-weighted per-corner
+normals smoothed across edges whose dihedral angle is below ``crease_angle_deg`` (30°, so
+sharp CAD edges and the bevels of decimated flat faces stay sharp; :func:`corner_normals`) or,
+with ``smooth_normals=False``, flat face normals.
 
 The same code runs on CPU and CUDA (``device``).
 """
@@ -27,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-__all__ = ["GTRenderer", "Lighting", "corner_normals", "render_silhouettes"]
+__all__ = ["CREASE_ANGLE_DEG", "GTRenderer", "Lighting", "corner_normals", "render_silhouettes"]
 
 
 def _unit(v):
@@ -55,11 +56,28 @@ class Lighting:
             raise ValueError("Lighting: directions and colors must have the same length")
 
 
-def corner_normals(vertices: np.ndarray, faces: np.ndarray, *, crease_angle_deg: float = 60.0) -> np.ndarray:
-    """Angle-weighted per-corner normals that are smooth except across creases.
+#: Dihedral angle (degrees) above which :func:`corner_normals` keeps an edge sharp (Blender's
+#: auto-smooth default).
+CREASE_ANGLE_DEG = 30.0
 
-    The normal at corner ``(f, k)`` averages (weighted by the corner angle) the normals of
-    every face around that vertex whose normal is within ``crease_angle_deg`` of face ``f``'s.
+
+def corner_normals(vertices: np.ndarray, faces: np.ndarray, *, crease_angle_deg: float = CREASE_ANGLE_DEG) -> np.ndarray:
+    """Area-weighted per-corner normals that are smooth except across creases.
+
+    The normal at corner ``(f, k)`` averages (weighted by face area) the normals of every
+    face around that vertex whose normal is within ``crease_angle_deg`` of face ``f``'s.
+
+    Why area weights and 30°: decimated CAD-like surfaces (the quality suite's procedural
+    shapes: marching cubes of a signed distance, decimated to 60k faces) keep a flat face as a
+    few large triangles beside thin bevels at its edges. With the corner-angle weights and
+    60° used before, a flat face's corners took much of the bevels' normals, and interpolating
+    them across the large triangles tilted the whole face: against the signed distance's own
+    normals, the dented box's normal maps were off by 3.5° on average (12° at the 90th
+    percentile), the mug's by 3.9°, the plate's by 5.0°, the star's by 2.9°, and the method's
+    normal prior pulled the box's flat faces into a 0.007 bulge. Area weights and 30°: 0.34°,
+    0.77°, 3.4°, 1.6° (flat face normals: 0.37°, 0.94°, 3.4°, 1.7°), the bowl 0.70° -> 0.43°;
+    on coarser decimations of the box (64 and 96 nodes, 3000 and 6000 faces) 13.6° / 11.7° ->
+    2.3° / 0.8°.
 
     Args:
         vertices: (V, 3) positions.
@@ -74,13 +92,6 @@ def corner_normals(vertices: np.ndarray, faces: np.ndarray, *, crease_angle_deg:
     fn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     ln = np.linalg.norm(fn, axis=1, keepdims=True)
     fn = np.where(ln > 0, fn / np.maximum(ln, 1e-300), 0.0)
-    # Interior angle at each corner.
-    e1 = p[:, [1, 2, 0]] - p
-    e2 = p[:, [2, 0, 1]] - p
-    cosang = np.einsum("fki,fki->fk", e1, e2) / np.maximum(
-        np.linalg.norm(e1, axis=2) * np.linalg.norm(e2, axis=2), 1e-300
-    )
-    ang = np.arccos(np.clip(cosang, -1.0, 1.0))  # [F, 3]
     cv = f.ravel()  # vertex of each corner
     cf = np.repeat(np.arange(len(f)), 3)  # face of each corner
     order = np.argsort(cv, kind="stable")
@@ -95,7 +106,7 @@ def corner_normals(vertices: np.ndarray, faces: np.ndarray, *, crease_angle_deg:
     keep = np.einsum("ij,ij->i", fn[cf[a]], fn[cf[b]]) >= cos_lim
     a, b = a[keep], b[keep]
     acc = np.zeros((len(cv), 3))
-    np.add.at(acc, a, fn[cf[b]] * ang.ravel()[b][:, None])
+    np.add.at(acc, a, fn[cf[b]] * (0.5 * ln[cf[b]]))  # area-weighted
     nrm = np.linalg.norm(acc, axis=1, keepdims=True)
     acc = np.where(nrm > 1e-12, acc / np.maximum(nrm, 1e-300), np.repeat(fn, 3, axis=0))
     return acc.reshape(-1, 3, 3).astype(np.float32)
@@ -130,7 +141,7 @@ class GTRenderer:
         vertex_colors=None,
         albedo=(0.72, 0.72, 0.72),
         smooth_normals: bool = True,
-        crease_angle_deg: float = 60.0,
+        crease_angle_deg: float = CREASE_ANGLE_DEG,
         lighting: Lighting | None = None,
         supersample: int = 1,
         device: str = "cpu",

@@ -228,7 +228,9 @@ def test_corner_normals_keep_cube_creases_sharp_and_smooth_spheres(rng):
     np.testing.assert_allclose(cn, np.repeat(fn[:, None], 3, axis=1), atol=1e-6)
     v, f = _icosphere(1.0, 3)
     cn = corner_normals(v, f)
-    np.testing.assert_allclose(cn, v[f], atol=5e-3)  # unit sphere: normal = position
+    # unit sphere: normal = position; area weights leave 0.6° on this 1280-face sphere
+    # (corner-angle weights 0.3°), in exchange for decimated flat faces (test_shapes.py)
+    np.testing.assert_allclose(cn, v[f], atol=1.2e-2)
 
 
 def test_bad_renderer_inputs_raise_clear_errors():
