@@ -1060,6 +1060,22 @@ class PolishConfig:
             a coarse mesh, where a tenth of the tets sit at such bends (a torus at 40 px),
             §7b's worst angle fell from 17.0° to 3.8°; at 128² every suite object (seed 0)
             and lego kept it (§7b's worst angle on the refined meshes 10.2-19.7°).
+        interior_follow, after_interior_follow: in the first and the second fit, the interior
+            vertices next to the boundary (over a tet edge) move by this fraction of the mean
+            displacement of their boundary neighbours (0: only the boundary moves), so a move
+            of the boundary does not squeeze its layer of tets against the volume floor and
+            faces the silhouettes leave alone can still settle (:func:`holowarp.stages.polish.
+            polish_silhouettes`). Finishing the quality suite's seed-0 runs (fast, 128², data
+            of 2026-12-06) again from their checkpoints with 0.8 in the second fit only
+            (F@0.005, Chamfer-L1): star 0.900 -> 0.914, 0.00288 -> 0.00279; fandisk 0.793
+            -> 0.808, 0.00418 -> 0.00399; dented box 0.683 -> 0.687, 0.00477 -> 0.00469;
+            spot 0.972 -> 0.973, 0.00243 -> 0.00241 (normal consistency 0.9874 -> 0.9875);
+            bowl 0.575 -> 0.577; plate and mug within 0.0003 of F@0.005 and 1% of Chamfer;
+            bob's F@0.005 and Chamfer unchanged, its normal consistency 0.99435 -> 0.99425.
+            Worst dihedral angles stayed at or above 10° (10.0-18.0°). With 0.8 in both fits the gains were about twice as large (star
+            0.938, fandisk 0.818, spot 0.975), but §7b, which runs between the fits, then
+            found the dented box's tets more skewed and reached only 8.4° (0.5 in both: 9.0°);
+            in the second fit :func:`holowarp.stages.polish.keep_angles` guards the angles.
     """
 
     enabled: bool = True
@@ -1078,6 +1094,8 @@ class PolishConfig:
     refine_bend: tuple[float, float] | None = (25.0, 60.0)
     refine_factor: float = 0.75
     refine_keep_deg: float = 10.0
+    interior_follow: float = 0.0
+    after_interior_follow: float = 0.8
 
     def __post_init__(self):
         for name in ("steps", "views", "check_views", "after_steps"):
@@ -1101,6 +1119,10 @@ class PolishConfig:
             raise ValueError(f"PolishConfig.refine_keep_deg must be degrees in [0, 90), got {self.refine_keep_deg!r}")
         if not (isinstance(self.refine_factor, (int, float)) and 0.0 < self.refine_factor <= 1.0):
             raise ValueError(f"PolishConfig.refine_factor must lie in (0, 1], got {self.refine_factor!r}")
+        for name in ("interior_follow", "after_interior_follow"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0:
+                raise ValueError(f"PolishConfig.{name} must lie in [0, 1], got {v!r}")
         a = self.after_angle_floor
         if a is not None and (isinstance(a, bool) or not isinstance(a, (int, float)) or not 0.0 <= a < 90.0):
             raise ValueError(f"PolishConfig.after_angle_floor must be None or degrees in [0, 90), got {a!r}")

@@ -58,6 +58,29 @@ def test_polish_pulls_a_grown_boundary_onto_the_silhouettes(grown_sphere):
     assert np.array_equal(V, V2)
 
 
+def test_the_interior_ring_follows_the_boundary_by_the_set_fraction(grown_sphere):
+    ds, mesh = grown_sphere
+    V0 = np.asarray(mesh.vertices)
+    cfg = PolishConfig(steps=20, views=4, lr=0.03, min_volume_fraction=0.5, interior_follow=0.8)
+    V, info = polish_silhouettes(mesh, ds, cfg, seed=3)
+    assert info["mask_l1_after"] < 0.7 * info["mask_l1_before"]
+    # numpy oracle: an interior vertex with boundary neighbours (over tet edges) moves by 0.8 x
+    # their mean displacement; deeper vertices stay
+    on = np.zeros(len(V0), dtype=bool)
+    on[np.unique(mesh.boundary_faces())] = True
+    e = np.asarray(mesh.edges())
+    e = np.concatenate([e, e[:, ::-1]])
+    e = e[~on[e[:, 0]] & on[e[:, 1]]]
+    ring = np.unique(e[:, 0])
+    want = np.array([V0[r] + 0.8 * (V[e[e[:, 0] == r, 1]] - V0[e[e[:, 0] == r, 1]]).mean(0) for r in ring])
+    close = np.abs(V[ring] - want).max(axis=1) < 1e-6
+    assert close.mean() > 0.9 and np.abs(V[ring] - V0[ring]).max() > 1e-3  # the floor may hold a few back
+    deep = ~on
+    deep[ring] = False
+    assert np.array_equal(V[deep], V0[deep])
+    assert np.all(mesh.with_vertices(V).signed_volumes() >= 0.5 * mesh.signed_volumes() * (1 - 1e-5))
+
+
 def test_the_default_floor_keeps_four_fifths_of_every_tet(grown_sphere):
     ds, mesh = grown_sphere
     V, info = polish_silhouettes(mesh, ds, PolishConfig(steps=15, views=4, lr=0.03), seed=1)
@@ -157,7 +180,8 @@ def test_keep_unfolded_puts_back_the_moves_that_wrap_a_fan_past_a_full_turn(rng)
                                  dict(refine_bend=(25.0,)), dict(refine_bend=(-1.0, 60.0)),
                                  dict(refine_bend=(25.0, 181.0)), dict(refine_bend=(True, 60.0)),
                                  dict(refine_factor=0.0), dict(refine_factor=1.5), dict(refine_keep_deg=-1.0),
-                                 dict(refine_keep_deg=90.0)])
+                                 dict(refine_keep_deg=90.0), dict(interior_follow=-0.1),
+                                 dict(after_interior_follow=1.5), dict(after_interior_follow=True)])
 def test_polish_settings_are_checked(bad):
     with pytest.raises(ValueError, match="PolishConfig"):
         PolishConfig(**bad)

@@ -20,7 +20,10 @@ has normal maps (``n`` the boundary's rendered normals, ``n_map`` the map, over 
 both cover), turns the facets the masks leave alone towards the photographed orientation
 (``PolishConfig.w_prior`` has the measurements); without normal maps only the masks enter,
 and a part of the surface no silhouette sees (a cavity) stays where the main loop put it.
-Interior vertices do not move. After every step, vertices of tets that fell below
+In the first fit the interior vertices do not move (``PolishConfig.interior_follow`` 0); in
+the second, those next to the boundary follow it by ``after_interior_follow`` (0.8) of their
+boundary neighbours' mean move, so the boundary's layer of tets is carried along rather than
+squeezed (the setting has the measurements). After every step, vertices of tets that fell below
 ``min_volume_fraction`` (0.8) of their volume at the start are put back
 (:func:`holowarp.stages.geometry.revert_inverting_moves`), so no tet inverts and the element
 improvement (§7b), which runs next, finds the elements much as the main loop left them.
@@ -135,7 +138,8 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
     check = train[np.linspace(0, len(train) - 1, min(config.check_views, len(train))).round().astype(int)]
     before = _mask_l1(xb0, faces, dataset, check, masks)
 
-    fit = _Fit(x, xb0, ids_t, faces, e, h, guard=dict(tets=tets, floor=floor, incidence=incidence))
+    fit = _Fit(x, xb0, ids_t, faces, e, h, guard=dict(tets=tets, floor=floor, incidence=incidence),
+               follow=_interior_ring(mesh, ids, config.interior_follow, dev))
     d, reverted = fit.run(dataset, train, masks, config, seed)
     moved = d.detach().norm(dim=1) / h
     info = {
@@ -268,12 +272,46 @@ def _flatten_pits(X: np.ndarray, ids: np.ndarray, lfaces: np.ndarray, depth: flo
     return moved
 
 
+def _interior_ring(mesh: TetMesh, ids: np.ndarray, factor: float, device):
+    """The interior vertices next to the boundary and how they follow the boundary's moves
+    (``PolishConfig.interior_follow``): (ring ids (R,), their rest positions (R, 3), the
+    pairs (ring index, boundary index) of the tet edges between them (P, 2), ``factor`` /
+    the number of boundary neighbours of each pair's ring vertex (P,)); None when ``factor``
+    is 0 or no interior vertex touches the boundary."""
+    if factor <= 0:
+        return None
+    ed = np.asarray(mesh.edges(), dtype=np.int64)
+    on = np.zeros(mesh.num_vertices, dtype=bool)
+    on[ids] = True
+    cross = ed[on[ed[:, 0]] != on[ed[:, 1]]]
+    if len(cross) == 0:
+        return None
+    cross = np.where(on[cross[:, 0]][:, None], cross[:, ::-1], cross)  # (interior, boundary)
+    ring, r_local = np.unique(cross[:, 0], return_inverse=True)
+    b_local = np.searchsorted(ids, cross[:, 1])
+    weight = factor / np.bincount(r_local, minlength=len(ring))[r_local]
+    T = lambda a, dt: torch.tensor(a, dtype=dt, device=device)  # noqa: E731
+    return (T(ring, torch.int64), T(np.asarray(mesh.vertices)[ring], torch.float32),
+            T(np.stack([r_local, b_local], 1), torch.int64), T(weight, torch.float32))
+
+
 class _Fit:
     """The Adam fit of the boundary displacements ``d`` (B, 3) to the masks (module
-    docstring); ``x`` (V, 3) follows every step, under the volume floor of ``guard``."""
+    docstring); ``x`` (V, 3) follows every step, under the volume floor of ``guard``, and
+    so do the interior vertices next to the boundary, by ``follow`` (:func:`_interior_ring`)."""
 
-    def __init__(self, x, xb0, ids_t, faces, edges, h, *, guard):
+    def __init__(self, x, xb0, ids_t, faces, edges, h, *, guard, follow=None):
         self.x, self.xb0, self.ids_t, self.faces, self.e, self.h, self.guard = x, xb0, ids_t, faces, edges, h, guard
+        self.follow = follow
+
+    def _place(self, d):
+        """Put the boundary at ``xb0 + d`` and its interior ring at its rest positions plus
+        the weighted mean of its boundary neighbours' displacements."""
+        self.x[self.ids_t] = self.xb0 + d
+        if self.follow is not None:
+            ring, r0, pairs, w = self.follow
+            moved = torch.zeros_like(r0).index_add_(0, pairs[:, 0], d[pairs[:, 1]] * w[:, None])
+            self.x[ring] = r0 + moved
 
     def run(self, dataset, train, masks, config: PolishConfig, seed: int):
         from holowarp.stages.geometry import revert_inverting_moves
@@ -299,7 +337,7 @@ class _Fit:
             opt.step()
             with torch.no_grad():
                 x_old = x.clone()
-                x[ids_t] = xb0 + d
+                self._place(d)
                 reverted = reverted + revert_inverting_moves(x, x_old, **self.guard)
                 d.copy_(x[ids_t] - xb0)
         return d.detach(), reverted
