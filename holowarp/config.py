@@ -1012,9 +1012,10 @@ class PolishConfig:
             no silhouette sees inside their edges, sat bulged or dipped by up to 0.007 at
             their centres (tilts of about 0.015 rad, where ``1 - cos`` is 1e-4 and pulls
             nothing) while their silhouettes matched the masks to 0.03 px. With the chord the
-            +x face's dip went from 0.0036 to 0.0020; the -x face's bulge (0.007) stayed,
-            perhaps held by the volume floor (a 0.007 move is a fifth of the tets' thickness
-            there; not established). Finishing the quality suite's seed-0
+            +x face's dip went from 0.0036 to 0.0020; the -x face's bulge (0.007) stayed:
+            the normal maps themselves showed it, since the renderer tilted decimated flat
+            faces (fixed on 2026-12-06, :func:`holowarp.render_gt.corner_normals`; the numbers
+            here are on the data before that). Finishing the quality suite's seed-0
             runs again from their checkpoints (fast, 128²; ``1 - cos`` at 0.02 -> the chord
             at 0.008; Chamfer-L1 / F@0.005 / normal consistency; hull in brackets): dented
             box 0.00530 -> 0.00528 / 0.559 -> 0.581 (0.595) / 0.9914 -> 0.9917; fandisk
@@ -1072,8 +1073,9 @@ class PolishConfig:
             spot 0.972 -> 0.973, 0.00243 -> 0.00241 (normal consistency 0.9874 -> 0.9875);
             bowl 0.575 -> 0.577; plate and mug within 0.0003 of F@0.005 and 1% of Chamfer;
             bob's F@0.005 and Chamfer unchanged, its normal consistency 0.99435 -> 0.99425.
-            Worst dihedral angles stayed at or above 10° (10.0-18.0°). With 0.8 in both fits the gains were about twice as large (star
-            0.938, fandisk 0.818, spot 0.975), but §7b, which runs between the fits, then
+            Worst dihedral angles stayed at or above 10° (10.0-18.0°). With 0.8 in both fits
+            the gains were about twice as large (star 0.938, fandisk 0.818, spot 0.975), but
+            §7b, which runs between the fits, then
             found the dented box's tets more skewed and reached only 8.4° (0.5 in both: 9.0°);
             in the second fit :func:`holowarp.stages.polish.keep_angles` guards the angles.
     """

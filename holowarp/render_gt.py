@@ -61,7 +61,8 @@ class Lighting:
 CREASE_ANGLE_DEG = 30.0
 
 
-def corner_normals(vertices: np.ndarray, faces: np.ndarray, *, crease_angle_deg: float = CREASE_ANGLE_DEG) -> np.ndarray:
+def corner_normals(vertices: np.ndarray, faces: np.ndarray, *,
+                   crease_angle_deg: float = CREASE_ANGLE_DEG) -> np.ndarray:
     """Area-weighted per-corner normals that are smooth except across creases.
 
     The normal at corner ``(f, k)`` averages (weighted by face area) the normals of every

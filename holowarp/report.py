@@ -349,9 +349,9 @@ def _touch_up(model, clean, dataset, config, device, state, polish_info, *, impr
     from holowarp.stages.polish import keep_angles, keep_unfolded, polish_silhouettes
 
     t0 = time.perf_counter()
-    V, info = polish_silhouettes(clean, dataset, replace(p, steps=p.after_steps, min_volume_fraction=p.after_volume_fraction,
-                                                         interior_follow=p.after_interior_follow),
-                                 seed=config.seed + 1, device=str(device))
+    second = replace(p, steps=p.after_steps, min_volume_fraction=p.after_volume_fraction,
+                     interior_follow=p.after_interior_follow)
+    V, info = polish_silhouettes(clean, dataset, second, seed=config.seed + 1, device=str(device))
     if p.after_angle_floor is not None:
         V, info["angle_put_back"] = keep_angles(clean, V, p.after_angle_floor)
     else:

@@ -36,9 +36,10 @@ moves that would take a tet's smallest dihedral angle below §7b's worst (or bel
 Before the fit, :func:`refine_bends` bisects the tets where the boundary turns sharply
 (``PolishConfig.refine_bend``, which has the measurements), so that the fits have vertices to
 bend the surface with where the main loop's facets are too coarse (horns, ears, handles); the
-surfels follow (:meth:`holowarp.tetgs.TetGaussians.apply_refine`). Then :func:`lift_pits` lifts the one-tet pits (a boundary vertex with three
-boundary neighbours, most of an edge below their plane) that the main loop leaves on some
-runs; no silhouette sees them, and the deepest set the Hausdorff distance (bob: 0.028).
+surfels follow (:meth:`holowarp.tetgs.TetGaussians.apply_refine`). Then :func:`lift_pits`
+lifts the one-tet pits (a boundary vertex with three boundary neighbours, most of an edge
+below their plane) that the main loop leaves on some runs; no silhouette sees them, and the
+deepest set the Hausdorff distance (bob: 0.028).
 
 Measured on the quality suite (fast preset, 128², 60 steps of 8 views, ~3 s each) by
 finishing the same main-loop results again with and without the polish: ``holowarp.bench
