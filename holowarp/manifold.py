@@ -8,9 +8,6 @@ the cleanup of §7) can break that in two ways, and this module holds both remed
   boundary is manifold again (the guard when the removed set is a choice, as in pruning);
 - :func:`repair_manifold`: remove the minority fans around the defects (the repair of an
   input that was not manifold to begin with);
-- :func:`thin_simple`: remove tets one layer at a time where each removal keeps the
-  topology (a *simple* tet), so that a removal which would cut a handle or split a piece
-  stops short of it;
 - :func:`fill_sealed`: put back the removed tets that no longer connect to the outside
   (a sealed void, which no view can see). A guard that puts tets back (the manifold
   restoration, the dent and pit rules) can close the mouth of a removed region and seal
@@ -24,10 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from holowarp.config import kept_components
-from holowarp.tetmesh import TET_EDGE_FACES, TET_EDGES, TET_FACES, TetMesh
+from holowarp.tetmesh import TET_FACES, TetMesh
 
-__all__ = ["restore_until_manifold", "repair_manifold", "thin_simple", "simple_tets", "vertex_to_tets", "fans",
-           "open_to_outside", "fill_sealed"]
+__all__ = ["restore_until_manifold", "repair_manifold", "vertex_to_tets", "fans", "open_to_outside", "fill_sealed"]
 
 
 def vertex_to_tets(tets: np.ndarray, n: int):
@@ -139,92 +135,6 @@ def fill_sealed(keep: np.ndarray, adj: np.ndarray) -> tuple[np.ndarray, int]:
     removed = ~keep
     sealed = removed & ~open_to_outside(removed, adj)
     return keep | sealed, int(sealed.sum())
-
-
-def simple_tets(tets: np.ndarray, keep: np.ndarray, adj: np.ndarray, which: np.ndarray) -> np.ndarray:
-    """Which of the kept tets ``which`` (K,) are *simple*: removing one alone from the kept
-    set leaves a set of the same topology (components, tunnels, cavities).
-
-    Removing tet t from K changes nothing topologically exactly when t's contact with the
-    rest, t ∩ (K - t), is a disk. In a conforming mesh that contact is the union of the
-    faces t shares with kept tets plus any vertex or edge it shares with kept tets through
-    no such face. So t is simple when it shares 1 to 3 faces with kept tets and every
-    vertex and edge of t that another kept tet uses lies in one of those faces.
-
-    Args:
-        tets: (M, 4) int vertex ids; keep: (M,) bool; adj: (M, 4) face neighbours (-1:
-            none), neighbour k across the face opposite local vertex k (TET_FACES order);
-        which: (K,) int ids of kept tets to test.
-    Returns:
-        (K,) bool.
-    """
-    T = tets[which]
-    nb = adj[which]
-    inner = (nb >= 0) & keep[np.maximum(nb, 0)]  # [K, 4] face shared with a kept tet
-    k = inner.sum(axis=1)
-    valence = np.bincount(tets[keep].reshape(-1), minlength=int(tets.max()) + 1)
-    # Vertex i of t lies in an inner face when some inner face is opposite another vertex.
-    in_face_v = np.stack([(inner & (np.arange(4) != i)).any(axis=1) for i in range(4)], axis=1)
-    ok = (k >= 1) & (k <= 3) & ((valence[T] <= 1) | in_face_v).all(axis=1)
-    # Edges: kept tets per edge, from sorted edge keys of the kept tets.
-    n = int(tets.max()) + 1
-    e = np.sort(tets[keep][:, TET_EDGES], axis=2).reshape(-1, 2)
-    keys, counts = np.unique(e[:, 0].astype(np.int64) * n + e[:, 1], return_counts=True)
-    te = np.sort(T[:, TET_EDGES], axis=2)  # [K, 6, 2]
-    tk = te[:, :, 0].astype(np.int64) * n + te[:, :, 1]
-    pos = np.minimum(np.searchsorted(keys, tk), len(keys) - 1)
-    used = np.where(keys[pos] == tk, counts[pos], 0) > 1
-    in_face_e = inner[:, TET_EDGE_FACES].any(axis=2)  # [K, 6]
-    return ok & (~used | in_face_e).all(axis=1)
-
-
-def thin_simple(vertices: np.ndarray, tets: np.ndarray, keep: np.ndarray, candidates: np.ndarray,
-                priority: np.ndarray, *, max_rounds: int = 200) -> tuple[np.ndarray, int]:
-    """Remove candidate tets from the kept set wherever removing them keeps its topology.
-
-    Each round takes the simple candidates (:func:`simple_tets`) on the kept set's boundary,
-    picks among them a vertex-disjoint set, lowest ``priority`` first (disjoint simple
-    removals cannot interact, so the round keeps the topology as each removal alone does),
-    removes it, and puts back those of them that left a non-manifold boundary edge or
-    vertex. It ends when a round removes nothing: the candidates left are those whose
-    removal would cut a handle, split a piece or open a cavity.
-
-    Args:
-        vertices: (N, 3); tets: (M, 4); keep: (M,) bool kept tets (not modified);
-        candidates: (M,) bool tets that may go; priority: (M,) float, lower goes first.
-    Returns:
-        (keep, removed): the new (M,) bool mask and how many tets went.
-    """
-    keep = keep.copy()
-    cand = candidates & keep
-    adj = TetMesh(vertices, tets, validate=False).face_adjacency().astype(np.int64)
-    removed = 0
-    for _ in range(max_rounds):
-        ids = np.flatnonzero(cand)
-        if len(ids) == 0:
-            break
-        ids = ids[simple_tets(tets, keep, adj, ids)]
-        if len(ids) == 0:
-            break
-        ids = ids[_vertex_disjoint(tets[ids], priority[ids], len(vertices))]
-        keep[ids] = False
-        sub = TetMesh(vertices, tets[keep], validate=False)
-        bad = np.union1d(sub.non_manifold_edges().ravel(), sub.non_manifold_vertices())
-        back = np.isin(tets[ids], bad).any(axis=1) if len(bad) else np.zeros(len(ids), bool)
-        keep[ids[back]] = True
-        cand[ids] = False  # a tet put back for manifoldness is not tried again
-        removed += int((~back).sum())
-    return keep, removed
-
-
-def _vertex_disjoint(T: np.ndarray, priority: np.ndarray, n: int) -> np.ndarray:
-    """(K,) bool: a set of the tets T (K, 4) sharing no vertex, each taken when it has the
-    lowest priority among the tets at each of its vertices."""
-    rank = np.empty(len(T), dtype=np.int64)
-    rank[np.argsort(priority, kind="stable")] = np.arange(len(T))
-    claim = np.full(n, len(T), dtype=np.int64)
-    np.minimum.at(claim, T.reshape(-1), np.repeat(rank, 4))
-    return (claim[T] == rank[:, None]).all(axis=1)
 
 
 def repair_manifold(mesh: TetMesh, *, max_rounds: int = 50,

@@ -54,8 +54,8 @@ gave back half the gain.
 Measured and not adopted (issue 12): a trim before the cleanup that removes the tets whose
 centroid the masks show to be empty (carve field under 0.1 with the masks as they are, or
 under 0.5 with all but 2% of the views), from the boundary inwards wherever that keeps the
-topology and a manifold boundary (whole face-connected groups first, then tet by tet with
-:func:`holowarp.manifold.thin_simple`). It targets webs such as the one the plate keeps in
+topology and a manifold boundary (whole face-connected groups first, then tet by tet where
+each removal alone keeps the topology). It targets webs such as the one the plate keeps in
 an inner corner of a hole (its Hausdorff point, 0.029, where the masks say empty). Finishing
 the suite's runs again from their checkpoints, it removed 0-68 tets per object (67-315 in
 the tolerant variant) and moved F@0.005, normal consistency and Hausdorff by at most 0.006
