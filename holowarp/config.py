@@ -975,7 +975,12 @@ class PolishConfig:
             (0.8), so none inverts and the element improvement, which runs after the polish,
             finds the tets much as the main loop left them. Bob's worst dihedral angle (12.9°
             without the polish): 5.1° with the polish after §7b at 0.5, 6.4° before it at 0.5,
-            11.8° before it at 0.8 (F@0.005 0.9884 / 0.9879 / 0.9883).
+            11.8° before it at 0.8 (F@0.005 0.9884 / 0.9879 / 0.9883). On the data of
+            2026-12-06 (finishes from the same checkpoints, fast, 128²), 0.6 raised F@0.005 on
+            eight of ten runs (star 0.914 -> 0.934, fandisk 0.808 -> 0.820, plate 0.987 ->
+            0.990) but took spot's normal consistency at seed 1 below the hull's (0.9873 ->
+            0.9854, hull 0.9864); 0.7 lowered it on four (bob 0.99425 -> 0.99357, bowl 0.9731
+            -> 0.9709). So 0.8 stays.
         check_views: training views the report's ``mask_l1_before`` / ``after`` average.
         pit_depth: before the element improvement, a boundary vertex with three boundary
             neighbours lying more than this many mean boundary edges below their plane (a
@@ -1066,8 +1071,8 @@ class PolishConfig:
             vertices next to the boundary (over a tet edge) move by this fraction of the mean
             displacement of their boundary neighbours (0: only the boundary moves), so a move
             of the boundary does not squeeze its layer of tets against the volume floor and
-            faces the silhouettes leave alone can still settle (:func:`holowarp.stages.polish.
-            polish_silhouettes`). Finishing the quality suite's seed-0 runs (fast, 128², data
+            faces the silhouettes leave alone can still settle
+            (:func:`holowarp.stages.polish.polish_silhouettes`). Finishing the quality suite's seed-0 runs (fast, 128², data
             of 2026-12-06) again from their checkpoints with 0.8 in the second fit only
             (F@0.005, Chamfer-L1): star 0.900 -> 0.914, 0.00288 -> 0.00279; fandisk 0.793
             -> 0.808, 0.00418 -> 0.00399; dented box 0.683 -> 0.687, 0.00477 -> 0.00469;
@@ -1076,9 +1081,9 @@ class PolishConfig:
             bob's F@0.005 and Chamfer unchanged, its normal consistency 0.99435 -> 0.99425.
             Worst dihedral angles stayed at or above 10° (10.0-18.0°). With 0.8 in both fits
             the gains were about twice as large (star 0.938, fandisk 0.818, spot 0.975), but
-            §7b, which runs between the fits, then
-            found the dented box's tets more skewed and reached only 8.4° (0.5 in both: 9.0°);
-            in the second fit :func:`holowarp.stages.polish.keep_angles` guards the angles.
+            §7b, which runs between the fits, then found the dented box's tets more skewed and
+            reached only 8.4° (0.5 in both: 9.0°); in the second fit
+            :func:`holowarp.stages.polish.keep_angles` guards the angles.
     """
 
     enabled: bool = True
