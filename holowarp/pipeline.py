@@ -238,8 +238,9 @@ class _Run:
             self.evidence = EmptyEvidence(self.out / "stage0" / "gaussians.ply", self.ds, self.cfg.topology,
                                           device=self.device)
         mesh = self.model.mesh()
-        info = prune(self.model, self.cfg.topology, evidence=self.evidence(mesh) if self.evidence else None,
-                     genus_bound=(lambda: self.evidence.hull_genus(mesh)) if self.evidence else None)
+        outside, in_front = self.evidence.parts(mesh) if self.evidence else (None, None)
+        info = prune(self.model, self.cfg.topology, evidence=None if outside is None else outside | in_front,
+                     outside=outside, genus_bound=(lambda: self.evidence.hull_genus(mesh)) if self.evidence else None)
         if self.cfg.schedule.prune_at.index(ev.iteration) == self.cfg.topology.refine_at_prune:
             refined = refine_near_surface(self.model, self.cfg.topology, self.ds)
             if refined is not None:

@@ -395,7 +395,7 @@ def test_prune_removes_low_alpha_tets_and_keeps_the_largest_piece():
 # The prune without its topology guards and pit rule: the tests below carve box meshes in
 # blocks whose inner corners the pit rule would keep (tests/..._fills_the_pits_it_would_dig).
 NO_PITS = TopologyConfig(pit_solid_fraction=1.0)
-PLAIN = replace(NO_PITS, genus_guard=False, split_guard=None)
+PLAIN = replace(NO_PITS, genus_guard=False, split_guard=None, restore_elsewhere=False)
 
 
 def _model_with_low(mesh, low) -> TetGaussians:
@@ -612,6 +612,34 @@ def test_prune_never_opens_sealed_cavities_nor_leaves_a_non_manifold_boundary(rn
             + info["restored_for_manifold"] + info["filled_sealed"]) == info["low_alpha"]
 
 
+def test_prune_swaps_restored_tets_outside_the_silhouettes_for_others(rng):
+    """The manifold guard's restorations outside a silhouette (``outside``) go again where
+    other pruned tets mend the boundary instead: the same topology, a manifold boundary,
+    fewer such tets kept; with ``restore_elsewhere`` off, ``outside`` changes nothing."""
+    mesh = box_tetmesh((6, 6, 6))
+    sig = lambda m: (m.num_components(), m.genus(), m.boundary_shells(), m.manifold()["manifold"])  # noqa: E731
+    swap = replace(PLAIN, restore_elsewhere=True)
+    swapped = 0
+    for _ in range(4):
+        low = rng.random(mesh.num_tets) < 0.3
+        outside = low & (rng.random(mesh.num_tets) < 0.5)
+        runs = {}
+        for name, cfg, out in (("plain", swap, None), ("swap", swap, outside), ("off", PLAIN, outside)):
+            model = _model_with_low(mesh, low)
+            info = prune(model, cfg, evidence=outside, outside=out)
+            runs[name] = (info, model.mesh())
+        (pi, pm), (si, sm), (oi, om) = runs["plain"], runs["swap"], runs["off"]
+        assert sig(sm) == sig(pm) and sig(sm)[3]
+        assert oi == pi and np.array_equal(om.tets, pm.tets)
+        assert pi["restored_elsewhere"] == 0
+        # Fewer tets outside the silhouettes stay: centroids identify the kept tets.
+        c_all = {tuple(np.round(x, 5)) for x in mesh.vertices[mesh.tets[outside]].mean(axis=1)}
+        n_out = lambda m: sum(tuple(np.round(x, 5)) in c_all for x in m.vertices[m.tets].mean(axis=1))  # noqa: E731
+        assert n_out(sm) == n_out(pm) - si["restored_elsewhere"]
+        swapped += si["restored_elsewhere"]
+    assert swapped > 0
+
+
 def test_corner_solid_angles_sum_to_the_analytic_values_of_a_cube_mesh(rng):
     """Around an interior vertex of a tet mesh the corner solid angles sum to 4 pi, on a face
     of the cube to 2 pi, on an edge to pi, at a corner to pi / 2; a regular tet's corner is
@@ -824,3 +852,39 @@ def test_preflight_accepts_a_thin_plate_that_falls_between_the_coarse_nodes():
 def test_pit_settings_out_of_range_are_refused_by_name(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         TopologyConfig(**bad)
+
+
+def test_restore_elsewhere_swaps_seen_restored_tets_for_spare_ones_where_the_topology_allows(rng):
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from holowarp.manifold import open_to_outside, restore_elsewhere, restore_until_manifold
+
+    a = box_tetmesh((5, 5, 3))
+    V, T = a.vertices, a.tets
+    adj = a.face_adjacency()
+    sig = lambda k: (lambda m: (m.num_components(), m.genus(), m.boundary_shells(),  # noqa: E731
+                                not len(m.non_manifold_edges()) and not len(m.non_manifold_vertices())))(
+        TetMesh(V, T[k], validate=False))
+    took = 0
+    for _ in range(6):
+        drop = open_to_outside(rng.random(a.num_tets) < 0.35, adj)
+        seen = drop & (rng.random(a.num_tets) < 0.5)
+        keep0, _ = restore_until_manifold(V, T, ~drop, drop)
+        keep, taken = restore_elsewhere(V, T, keep0, drop & seen, drop & ~seen)
+        took += taken
+        assert sig(keep) == sig(keep0) and sig(keep)[3]
+        assert keep[keep0 & ~seen].all()  # what no view shows empty and was kept stays kept
+        assert not (keep & ~keep0 & seen).any()  # only spare tets come back
+        assert taken == int((keep0 & seen & ~keep).sum())
+        # Each group of seen tets still kept fails the swap on its own (the oracle, one group
+        # at a time, finds nothing more to take).
+        left = keep & seen
+        r, q = np.repeat(np.arange(a.num_tets), 4), adj.ravel()
+        e = (q >= 0) & left[r] & left[np.maximum(q, 0)]
+        lab = connected_components(coo_matrix((np.ones(e.sum()), (r[e], q[e])), shape=(a.num_tets,) * 2))[1]
+        for g in np.unique(lab[left]):
+            grp = left & (lab == g)
+            trial, _ = restore_until_manifold(V, T, keep & ~grp, drop & ~seen & ~keep)
+            assert sig(trial) != sig(keep0) or not (grp & ~trial).any()
+    assert took > 0

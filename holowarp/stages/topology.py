@@ -42,7 +42,7 @@ import torch
 from holowarp.camera import project_points
 from holowarp.carve import hull_genus, in_front_of_surface, inside_hull
 from holowarp.config import TopologyConfig, kept_components
-from holowarp.manifold import fill_sealed, open_to_outside, restore_until_manifold
+from holowarp.manifold import fill_sealed, open_to_outside, restore_elsewhere, restore_until_manifold
 from holowarp.tetgs import TetGaussians
 from holowarp.tetmesh import TetMesh
 
@@ -104,6 +104,15 @@ class EmptyEvidence:
         return self._hull_genus
 
     def __call__(self, mesh: TetMesh) -> np.ndarray:
+        """(M,) bool: the tets some view shows empty, ``outside | in_front`` of :meth:`parts`."""
+        outside, in_front = self.parts(mesh)
+        return outside | in_front
+
+    def parts(self, mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
+        """The evidence by its source, two (M,) bool: ``outside`` (the centroid projects
+        outside some training silhouette: exact where the masks are) and ``in_front`` (in
+        front of the stage-0 surface in enough views: as good as the surfels' depth; all
+        False without stage-0 surfels)."""
         from pathlib import Path
 
         if self._maps is None and Path(self.ply).is_file():
@@ -111,11 +120,12 @@ class EmptyEvidence:
         c = mesh.vertices[mesh.tets].mean(axis=1)
         outside = ~inside_hull(self.ds, c, self.ds.train_idx, device=self.device)
         if self._maps is None:
-            return outside
+            return outside, np.zeros_like(outside)
         E = mesh.edges()
         tol = self.cfg.depth_carve_tol * float(np.linalg.norm(mesh.vertices[E[:, 0]] - mesh.vertices[E[:, 1]], axis=1).mean())
-        return outside | in_front_of_surface(self.ds, c, self.views, *self._maps, tol=tol,
-                                             min_views=self.cfg.depth_carve_min_views, window=self.cfg.depth_carve_window)
+        return outside, in_front_of_surface(self.ds, c, self.views, *self._maps, tol=tol,
+                                             min_views=self.cfg.depth_carve_min_views,
+                                             window=self.cfg.depth_carve_window)
 
 
 def _carve_views(views, config: TopologyConfig) -> np.ndarray:
@@ -409,7 +419,13 @@ def refit_appearance(model: TetGaussians, dataset, config: TopologyConfig, steps
     return {"steps": int(steps), "rgb_before": float(rgb[:tenth].mean()), "rgb_after": float(rgb[-tenth:].mean())}
 
 
-def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, genus_bound=None) -> dict:
+#: The counts of :func:`prune`'s report, all 0 when it prunes nothing because it would empty the mesh.
+_PRUNE_COUNTS = ("pruned", "kept_cavity", "kept_dents", "kept_pits", "restored_for_manifold", "restored_elsewhere",
+                 "filled_sealed", "kept_for_genus", "kept_for_split", "genus_over_bound", "removed_components",
+                 "raw_components", "raw_non_manifold", "tets_removed_by_component")
+
+
+def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, outside=None, genus_bound=None) -> dict:
     """Delete tets with alpha < prune_alpha and the vertices no tet uses (method.md §5).
 
     Guards keep the result a simulation-ready solid whose topology follows the images
@@ -426,6 +442,10 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, genus_b
       non-manifold edge or vertex are restored, repeatedly, until the boundary is a
       manifold. Restoring every pruned tet gives back the (manifold) mesh before the
       prune, so this terminates with a manifold boundary whenever the input had one;
+      with ``outside`` (M,) bool (the tets whose centroid projects outside a training
+      silhouette, :meth:`EmptyEvidence.parts`) and ``config.restore_elsewhere``, restored
+      tets among them go again wherever restoring other pruned tets mends the boundary
+      instead, with the same topology (:func:`holowarp.manifold.restore_elsewhere`);
     - pruning never leaves a sealed void (:func:`_fill_sealed_voids`);
     - with ``evidence`` (M,) bool, the tets some view shows to be empty space (outside a
       silhouette, or in front of the rendered surface): if the tets no view shows empty
@@ -448,7 +468,8 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, genus_b
         boundary edges + vertices the plain rule would have left, before the guards below),
         ``kept_cavity`` (low-alpha tets kept because sealed), ``kept_dents`` (low-alpha tets
         kept because three or more of their faces meet kept tets), ``kept_pits``,
-        ``restored_for_manifold``, ``kept_for_genus``, ``kept_for_split`` (low-alpha tets kept
+        ``restored_for_manifold``, ``restored_elsewhere`` (seen-empty restored tets swapped
+        for blind ones), ``kept_for_genus``, ``kept_for_split`` (low-alpha tets kept
         by the guards), ``genus_over_bound``, ``filled_sealed`` (put back: sealed),
         ``genus_before``, ``genus_after``, ``removed_components``, ``tets_removed_by_component``,
         ``tets_after``, ``emptied``, and with ``config.min_component`` ``kept_components``.
@@ -460,17 +481,15 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, genus_b
     low = alpha < config.prune_alpha
     info = {"tets_before": M, "low_alpha": int(low.sum()), "emptied": False}
     if low.all():
-        info.update(emptied=True, pruned=0, kept_cavity=0, kept_dents=0, kept_pits=0, restored_for_manifold=0,
-                    filled_sealed=0, kept_for_genus=0, kept_for_split=0, genus_over_bound=0, removed_components=0,
-                    raw_components=0, raw_non_manifold=0, tets_removed_by_component=0, tets_after=M)
-        return info
+        return {**info, **dict.fromkeys(_PRUNE_COUNTS, 0), "emptied": True, "tets_after": M}
     adj = mesh.face_adjacency()
     drop = open_to_outside(low, adj)
     info["kept_cavity"] = int((low & ~drop).sum())
     info.update(_raw_counts(mesh, drop))
     info["kept_dents"] = _keep_dents(drop, adj, config)
     info["kept_pits"] = _keep_pits(mesh, drop, config, evidence if config.uses_evidence else None)
-    keep, ids, n, removed, n_kept = _guarded_keep(mesh, drop, info, config.min_component)
+    seen = np.asarray(outside, dtype=bool) if outside is not None and config.restore_elsewhere else None
+    keep, ids, n, removed, n_kept = _guarded_keep(mesh, drop, info, config.min_component, seen=seen)
     info["genus_before"] = int(mesh.genus())
     info["kept_for_genus"] = info["kept_for_split"] = info["genus_over_bound"] = 0
     if evidence is not None and config.uses_evidence:
@@ -552,7 +571,7 @@ def _guarded_by_evidence(mesh: TetMesh, drop, evidence, plain: tuple, info: dict
     guard = _topology_guard(mesh, plain, (ids, removed), config, genus_bound, info)
     if guard is None:
         return None
-    info["restored_for_manifold"] = alt["restored_for_manifold"]
+    info["restored_for_manifold"], info["restored_elsewhere"] = alt["restored_for_manifold"], 0
     info[guard] = int(blind[ids].sum())
     return ids, n, removed, n_kept
 
@@ -586,14 +605,22 @@ def _topology_guard(mesh: TetMesh, plain: tuple, seen: tuple, config: TopologyCo
     return None
 
 
-def _guarded_keep(mesh: TetMesh, drop: np.ndarray, info: dict, min_component: float | None = None):
+def _guarded_keep(mesh: TetMesh, drop: np.ndarray, info: dict, min_component: float | None = None, seen=None):
     """The manifold guard and the component rule (:func:`holowarp.config.kept_components`:
     the largest only, or every one above ``min_component`` of the kept tets): (keep mask,
     kept ids, components, tets removed with the dropped components, components kept);
-    ``info["restored_for_manifold"]`` is set."""
+    ``info["restored_for_manifold"]`` is set.
+
+    With ``seen`` (M,) bool, the tets outside a silhouette, the restored ones among them
+    go again wherever restoring other dropped tets mends the boundary instead
+    (:func:`holowarp.manifold.restore_elsewhere`); ``info["restored_elsewhere"]`` counts
+    them (see ``TopologyConfig.restore_elsewhere``)."""
     T = mesh.tets
-    keep, restored = restore_until_manifold(mesh.vertices, T, ~drop, drop)
-    info["restored_for_manifold"] = restored
+    keep, _ = restore_until_manifold(mesh.vertices, T, ~drop, drop)
+    info["restored_elsewhere"] = 0
+    if seen is not None:
+        keep, info["restored_elsewhere"] = restore_elsewhere(mesh.vertices, T, keep, drop & seen, drop & ~seen)
+    info["restored_for_manifold"] = int((keep & drop).sum())
     labels, n = TetMesh(mesh.vertices, T[keep], validate=False).components()
     ids = np.flatnonzero(keep)
     removed, n_kept = 0, min(n, 1)
