@@ -468,8 +468,8 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, outside
         boundary edges + vertices the plain rule would have left, before the guards below),
         ``kept_cavity`` (low-alpha tets kept because sealed), ``kept_dents`` (low-alpha tets
         kept because three or more of their faces meet kept tets), ``kept_pits``,
-        ``restored_for_manifold``, ``restored_elsewhere`` (seen-empty restored tets swapped
-        for blind ones), ``kept_for_genus``, ``kept_for_split`` (low-alpha tets kept
+        ``restored_for_manifold``, ``restored_elsewhere`` (restored tets outside a silhouette
+        swapped for other pruned ones), ``kept_for_genus``, ``kept_for_split`` (low-alpha tets kept
         by the guards), ``genus_over_bound``, ``filled_sealed`` (put back: sealed),
         ``genus_before``, ``genus_after``, ``removed_components``, ``tets_removed_by_component``,
         ``tets_after``, ``emptied``, and with ``config.min_component`` ``kept_components``.
