@@ -237,10 +237,12 @@ class _Run:
         if self.cfg.topology.uses_evidence and self.evidence is None:
             self.evidence = EmptyEvidence(self.out / "stage0" / "gaussians.ply", self.ds, self.cfg.topology,
                                           device=self.device)
+        t0 = time.perf_counter()
         mesh = self.model.mesh()
         outside, in_front = self.evidence.parts(mesh) if self.evidence else (None, None)
         info = prune(self.model, self.cfg.topology, evidence=None if outside is None else outside | in_front,
                      outside=outside, genus_bound=(lambda: self.evidence.hull_genus(mesh)) if self.evidence else None)
+        info["seconds"] = time.perf_counter() - t0  # the evidence and the guards, before any refinement
         if self.cfg.schedule.prune_at.index(ev.iteration) == self.cfg.topology.refine_at_prune:
             refined = refine_near_surface(self.model, self.cfg.topology, self.ds)
             if refined is not None:
