@@ -97,13 +97,6 @@ def restore_until_manifold(
     return keep, restored
 
 
-def _signature(vertices: np.ndarray, tets: np.ndarray) -> tuple[int, int, int, bool]:
-    """(components, genus, boundary shells, manifold boundary) of a tet set."""
-    m = TetMesh(vertices, tets, validate=False)
-    manifold = len(m.non_manifold_edges()) == 0 and len(m.non_manifold_vertices()) == 0
-    return m.num_components(), m.genus(), m.boundary_shells(), manifold
-
-
 def restore_elsewhere(vertices: np.ndarray, tets: np.ndarray, keep: np.ndarray, seen: np.ndarray,
                       spare: np.ndarray) -> tuple[np.ndarray, int]:
     """Take back restored tets some view shows to be empty (``seen``) wherever restoring
@@ -125,28 +118,22 @@ def restore_elsewhere(vertices: np.ndarray, tets: np.ndarray, keep: np.ndarray, 
     Returns:
         (keep, taken): the new (M,) bool mask and how many ``seen`` tets went.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
+    signature = lambda k: TetMesh(vertices, tets[k], validate=False).topology_signature()  # noqa: E731
     keep = keep.copy()
-    M = len(tets)
-    adj = TetMesh(vertices, tets, validate=False).face_adjacency().astype(np.int64).reshape(-1)
-    rows = np.repeat(np.arange(M), 4)
-    ref = _signature(vertices, tets[keep])
+    ref = signature(keep)
     taken, gone_in_pass = 0, 1
     # A group that stays in one pass may go in the next, once a neighbour's swap changed
     # what it touches: passes until one takes nothing.
     while gone_in_pass:
         cand = keep & seen
-        both = (adj >= 0) & cand[rows] & cand[np.maximum(adj, 0)]
-        g = coo_matrix((np.ones(int(both.sum())), (rows[both], adj[both])), shape=(M, M))
-        lab = connected_components(g, directed=False)[1]
+        lab = np.full(len(tets), -1)
+        lab[cand] = TetMesh(vertices, tets[cand], validate=False).components()[0]
         gone_in_pass = 0
         for grp in np.unique(lab[cand]):
-            group = cand & (lab == grp) & keep
+            group = (lab == grp) & keep
             trial, _ = restore_until_manifold(vertices, tets, keep & ~group, spare & ~keep)
             gone = int((group & ~trial).sum())
-            if gone and _signature(vertices, tets[trial]) == ref:
+            if gone and signature(trial) == ref:
                 keep, gone_in_pass = trial, gone_in_pass + gone
         taken += gone_in_pass
     return keep, taken

@@ -415,6 +415,11 @@ class TetMesh:
             "non_manifold_faces": nmf,
         }
 
+    def topology_signature(self) -> tuple[int, int, int, bool]:
+        """``(components, genus, boundary shells, manifold boundary)``: what the guards that
+        edit a mesh (the prune's swap, the element improvement) must leave as it was."""
+        return self.num_components(), self.genus(), self.boundary_shells(), bool(self.manifold()["manifold"])
+
     def boundary_shells(self) -> int:
         """Number of connected pieces of the boundary surface (via shared vertices)."""
         bf = self.boundary_faces().astype(np.int64)

@@ -633,11 +633,6 @@ def _interior_flip_pass(w: _Work) -> int:
     return int(len(kind))
 
 
-def _topology_signature(mesh: TetMesh) -> tuple:
-    """What the stage must keep: components, genus, boundary shells, manifoldness."""
-    return (mesh.num_components(), mesh.genus(), mesh.boundary_shells(), bool(mesh.manifold()["manifold"]))
-
-
 def _boundary_edge_keys(mesh: TetMesh, N: int) -> np.ndarray:
     bf = mesh.boundary_faces().astype(np.int64)
     e = np.concatenate([bf[:, [0, 1]], bf[:, [1, 2]], bf[:, [2, 0]]])
@@ -773,7 +768,7 @@ def _apply_checked(w: _Work, signature: tuple, old, new, vts, idx, depth: int) -
     keep[o[o >= 0]] = False
     T2 = np.concatenate([T[keep], nw[valid]])
     trial, _ = TetMesh(V, T2, validate=False).remove_unused_vertices()
-    if _topology_signature(trial) == signature:
+    if trial.topology_signature() == signature:
         parents = _locate(V, T, o, V[np.maximum(nw, 0)].mean(axis=2), w.parent)
         w.replace(o[o >= 0], nw[valid], parents[valid])
         return idx
@@ -1098,7 +1093,7 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
         )
     mesh, _ = mesh.remove_unused_vertices()
     w = _Work(mesh, cfg, device)
-    signature = _topology_signature(mesh)
+    signature = mesh.topology_signature()
     L = mean_boundary_edge(mesh)
     bound = cfg.max_surface_move * L
     rng = np.random.default_rng(0)
