@@ -548,7 +548,7 @@ def test_normal_prior_in_geometry_blocks_matches_a_numpy_cosine_and_is_logged(sp
     blk = GeometryBlock(model, ds, ds.train_idx, GeometryConfig(w_prior=0.5), block_iters=4, total_mesh_iters=4)
     v = int(ds.train_idx[2])
     out = rasterize_mesh(blk.x, blk.faces, ds.viewmats[v], ds.K[v], ds.width, ds.height)
-    got = float(blk._normal_prior(out, v).detach())
+    got = float(blk.view_losses(out, v)[2].detach())
     n, p = out["normal"].detach().numpy(), ds.normals[v]
     sel = (out["alpha"].detach().numpy() > 0.5) & (np.linalg.norm(p, axis=-1) > 0.5)
     cos = (n * p).sum(-1)[sel] / (np.linalg.norm(n, axis=-1)[sel] * np.linalg.norm(p, axis=-1)[sel])

@@ -44,6 +44,10 @@ Later on 2026-12-06 the prune began to swap the tets its manifold guard restores
 silhouette for other pruned tets (``TopologyConfig.restore_elsewhere``), a change of the
 kept tets on purpose: this machine's hash was recorded again (252 tets, 128 vertices). With
 ``restore_elsewhere`` off the previous hash (``af6a5a90...``, 253 tets) holds.
+
+Later still a build machine of another kind (AMD EPYC with AVX-512) gave ``c8202bef...`` at
+commit a20a799, unchanged code: recorded beside the first. The fused per-view losses of the
+mesh blocks (``holowarp.ops.mesh_losses``) that came next keep both machines' hashes.
 """
 
 from __future__ import annotations
@@ -62,6 +66,9 @@ import trimesh
 RECORDED_HASHES = {
     "3e163e905957ca6dc206cae8d102ac33fb968bc785b443554127f613c2f45330":
         ((252, 128), "build machine of 2026-12-06, prune's restore_elsewhere (AMD EPYC)", "AMD EPYC|avx,avx2,fma"),
+    "c8202befc947a6053f2db5c87b726271293d88b468fd021218a73966633d0cb3":
+        ((252, 128), "build machine of 2026-12-06, a20a799 (AMD EPYC, AVX-512)",
+         "AMD EPYC|avx,avx2,avx512_bf16,avx512f,avx512vl,fma"),
 }
 #: Instruction sets that change how LLVM (Warp's CPU kernels) and torch's kernels round.
 _FINGERPRINT_FLAGS = ("avx", "avx2", "fma", "avx512f", "avx512vl", "avx512_bf16", "avx512_fp16", "amx_tile")

@@ -43,7 +43,6 @@ import numpy as np
 import torch
 
 from holowarp.config import GeometryConfig
-from holowarp.losses import covered_prior_loss
 from holowarp.progress import LossBuffer
 from holowarp.tetgs import TetGaussians
 
@@ -147,8 +146,8 @@ class GeometryBlock:
         self.opt = UniformAdam([self.x], lr=config.lr_start, max_step=config.max_step * self.mean_edge)
         if optimizer_state is not None:
             self.opt.load_state_dict(optimizer_state)
-        self.masks = torch.as_tensor(dataset.masks, device=dev)
-        self.normals = (torch.as_tensor(dataset.normals, device=dev)
+        self.masks = torch.as_tensor(dataset.masks, dtype=torch.float32, device=dev)
+        self.normals = (torch.as_tensor(dataset.normals, dtype=torch.float32, device=dev)
                         if dataset.normals is not None and config.w_prior > 0 else None)
         self.cache: dict = {}
         with torch.no_grad():
@@ -158,24 +157,30 @@ class GeometryBlock:
 
     def surfel_normals(self, view: int):
         """The frozen surfels' rendered normal (H, W, 3, unit) and coverage (H, W) in ``view``,
-        with the surfels at the block's rest positions (so a resumed block sees the same
-        picture); rendered once per view and block, kept in float16."""
+        float16, with the surfels at the block's rest positions (so a resumed block sees the
+        same picture); rendered once per view and block."""
         if view not in self.cache:
             ds = self.dataset
             with torch.no_grad():
                 out = self.model.render(ds.viewmats[view], ds.K[view], ds.width, ds.height, vertices=self.rest)
                 n = out["normal"]
                 n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-                self.cache[view] = (n.to(torch.float16), out["alpha"].to(torch.float16))
-        n, a = self.cache[view]
-        return n.float(), a.float()
+                self.cache[view] = (n.to(torch.float16).contiguous(), out["alpha"].to(torch.float16).contiguous())
+        return self.cache[view]
 
-    def _normal_prior(self, out: dict, view: int):
-        """Mean ``1 - cos`` of the mesh's rendered normals against the dataset's normal map of
-        ``view`` where both cover the pixel; None without normal maps or with ``w_prior`` 0."""
-        if self.normals is None or self.cfg.w_prior <= 0:
-            return None
-        return covered_prior_loss(self.normals[view], out["normal"], out["alpha"])
+    def view_losses(self, out: dict, view: int):
+        """``(L_mask, L_norm, L_prior)`` of the mesh render ``out`` (:func:`holowarp.ops.rasterize_mesh`)
+        in ``view``, 0-dim tensors from one fused pass (:func:`holowarp.ops.mesh_losses.mesh_view_losses`):
+        the silhouette L1 against the mask, the mean ``1 - cos`` against the frozen surfels'
+        normals where both cover the pixel, and against the dataset's normal map (``L_prior``,
+        None without normal maps or with ``w_prior`` 0)."""
+        from holowarp.ops.mesh_losses import mesh_view_losses
+
+        n_gs, a_gs = self.surfel_normals(view)
+        prior = self.normals[view] if self.normals is not None else None
+        l_mask, l_norm, l_prior = mesh_view_losses(out["alpha"], out["normal"], self.masks[view], n_gs, a_gs,
+                                                   prior).unbind()
+        return l_mask, l_norm, (l_prior if prior is not None else None)
 
     def view_of(self, t: int, seed: int) -> int:
         """The training view of global mesh iteration ``t``: drawn from ``default_rng([seed, 1, t])``."""
@@ -195,13 +200,7 @@ class GeometryBlock:
         view = self.view_of(t, seed)
         H, W = ds.height, ds.width
         out = rasterize_mesh(x, self.faces, ds.viewmats[view], ds.K[view], W, H)
-        l_mask = (out["alpha"] - self.masks[view]).abs().mean()
-        n_gs, a_gs = self.surfel_normals(view)
-        # Mean of 1 - cos over the pixels both cover; written without a boolean gather (a
-        # data-dependent shape is a host sync); no such pixel gives 0.
-        sel = ((out["alpha"] > 0) & (a_gs > 0.5)).to(x.dtype)
-        l_norm = ((1.0 - (out["normal"] * n_gs).sum(-1)) * sel).sum() / sel.sum().clamp_min(1.0)
-        l_prior = self._normal_prior(out, view)
+        l_mask, l_norm, l_prior = self.view_losses(out, view)
         lam = mesh_lambda(t, self.total)
         lam_cond = 1.0 if (not cfg.two_stage_hc or k >= self.block_iters // 2) else 0.0
         l_hc = en.hc_laplacian(x, self.bf_np, lam_cond=lam_cond) / self.mean_edge**2
