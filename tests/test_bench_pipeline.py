@@ -17,20 +17,21 @@ def test_phase_times_the_rasteriser_on_the_views_of_the_timed_steps(monkeypatch)
     now = [0.0]
     monkeypatch.setattr(bench, "time", types.SimpleNamespace(perf_counter=lambda: now[0]))
     cost = lambda i: 1e-3 * (1 + i % 3)  # noqa: E731
-    stepped, rastered = [], []
+    calls = []
 
     def step(i):
-        stepped.append(i)
+        calls.append(("step", i))
         now[0] += cost(i) + 2e-3
 
     def raster(i):
-        rastered.append(i)
+        calls.append(("raster", i))
         now[0] += cost(i)
 
     rec = bench._phase("demo", step, 6, 2, raster, torch.device("cpu"), warmup=2)
-    timed = list(range(2, 8))
-    assert stepped == [0, 1, *timed, 8, 9]  # warm-up, timed, probed
-    assert rastered == [2, *timed]  # one warm-up call, then each timed step's view
+    timed = [c for i in range(2, 8) for c in (("step", i), ("raster", i))]
+    # Warm-up steps and one warm-up raster, then each timed step followed by its view's
+    # rasteriser (in turns, so both see the machine in the same state), then the probed steps.
+    assert calls == [("step", 0), ("step", 1), ("raster", 0), *timed, ("step", 8), ("step", 9)]
     assert rec["overhead_factor"] == pytest.approx(24 / 12, abs=0.01)
     assert rec["raster_ms"] == pytest.approx(2.0) and rec["ms_per_iter"] == pytest.approx(4.0)
 

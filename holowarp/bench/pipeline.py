@@ -13,8 +13,9 @@ steps, each phase with the pipeline's own step functions. Per phase it prints:
 - ``syncs_per_iter``, ``uploads_per_iter``, ``launches_per_iter``: host reads of device
   values, host-to-device tensor creations, Warp launches;
 - ``raster_ms``: the phase's rasteriser forward + backward alone on the same model, for
-  each view a timed iteration drew (the surfel rasteriser for stage 0, topology and
-  Gaussian steps, the triangle rasteriser for geometry steps), the median over them; and
+  each view a timed iteration drew, right after that iteration (the surfel rasteriser for
+  stage 0, topology and Gaussian steps, the triangle rasteriser for geometry steps), the
+  median over them; and
   ``overhead_factor``: the timed iterations' total time over the total of their views'
   rasteriser alone (target <= 1.5). Views differ in cost (bob's cover 2x more pixels in
   some than in others), so the rasteriser is timed on the iterations' own views, not one.
@@ -61,31 +62,32 @@ def _sync(dev):
 
 
 def _phase(name, step, n: int, n_probe: int, raster, dev, *, warmup: int = 2) -> dict:
-    """Time ``step(i)`` for ``n`` iterations, probe ``n_probe`` more, then time ``raster(i)``
-    (the rasteriser alone on the view of step ``i``) for each timed ``i``."""
+    """Time ``step(i)`` for ``n`` iterations, each followed by ``raster(i)`` (the rasteriser
+    alone on the view of step ``i``), then probe ``n_probe`` more steps.
+
+    Step and rasteriser are timed in turns, so that both see the machine in the same state:
+    timed one block after the other, a machine whose speed drifts by a quarter within a
+    minute (this 2-core VM's does) moved the ratio as much as any change measured."""
     from holowarp.bench.probe import Probe
 
     for i in range(warmup):
         step(i)
-    times = []
+    raster(0)
+    times, r_times = [], []
     for i in range(warmup, warmup + n):
         _sync(dev)
         t0 = time.perf_counter()
         step(i)
         _sync(dev)
-        times.append((time.perf_counter() - t0) * 1e3)
+        t1 = time.perf_counter()
+        raster(i)
+        _sync(dev)
+        times.append((t1 - t0) * 1e3)
+        r_times.append((time.perf_counter() - t1) * 1e3)
     with Probe(str(dev)) as probe:
         for i in range(warmup + n, warmup + n + n_probe):
             with probe.region():
                 step(i)
-    raster(warmup)
-    r_times = []
-    for i in range(warmup, warmup + n):
-        _sync(dev)
-        t0 = time.perf_counter()
-        raster(i)
-        _sync(dev)
-        r_times.append((time.perf_counter() - t0) * 1e3)
     ms, r_ms = statistics.median(times), statistics.median(r_times)
     return {"phase": name, "iters": n, "ms_per_iter": round(ms, 2), "raster_ms": round(r_ms, 2),
             "overhead_factor": round(sum(times) / sum(r_times), 2), **probe.summary()}
