@@ -31,8 +31,7 @@ from holowarp.ops.tet_energy import (
     biharmonic_energy,
     deformation_gradients,
     eikonal_loss,
-    hc_energy,
-    hc_targets,
+    hc_laplacian_energy,
     hc_topology,
     inversion_penalty,
     phi_edge_losses,
@@ -293,7 +292,8 @@ class TetEnergies:
         uses ``lam_cond = 0``, stage 2 ``lam_cond = 1``. Targets (Vollmer et al. 1999, with
         ``alpha``, ``beta``; original positions = the captured rest shape) and normals are
         computed from ``x`` and held constant (stop-gradient), so the gradient pulls each
-        vertex towards its target. See :func:`holowarp.ops.tet_energy.hc_energy`.
+        vertex towards its target. See :func:`holowarp.ops.tet_energy.hc_energy` (computed by
+        :func:`holowarp.ops.tet_energy.hc_laplacian_energy`, targets and energy in one pass).
 
         Args:
             x: (N, 3) vertex positions.
@@ -312,8 +312,7 @@ class TetEnergies:
             if self.rest_vertices is None:
                 self.capture_rest(x.detach())
             x_orig = self.rest_vertices.to(device=x.device, dtype=x.dtype)
-        target, normal = hc_targets(x, topo, x_orig=x_orig, alpha=alpha, beta=beta)
-        return hc_energy(x, topo, target, normal, lam_cond)
+        return hc_laplacian_energy(x, topo, lam_cond, x_orig=x_orig, alpha=alpha, beta=beta)
 
 
 def _np(a) -> np.ndarray:

@@ -41,6 +41,7 @@ __all__ = [
     "hc_face_normal_kernel",
     "hc_target_kernel",
     "hc_energy_kernel",
+    "hc_target_energy_kernel",
     "eikonal_kernel",
     "smoothness_kernel",
     "phi_edge_kernel",
@@ -332,6 +333,45 @@ def hc_face_normal_kernel(
     wp.atomic_add(normal_acc, lf[2], m)
 
 
+@wp.func
+def _hc_target(s: int, p_in: wp.array(dtype=Any), b_in: wp.array(dtype=Any), nbr_offsets: wp.array(dtype=wp.int32),
+               nbr_ids: wp.array(dtype=wp.int32), beta: Any):
+    # target_s = p_s - (beta b_s + (1 - beta) mean_{j in N(s)} b_j)
+    bs = b_in[s]
+    acc = bs - bs
+    start = nbr_offsets[s]
+    end = nbr_offsets[s + 1]
+    for j in range(start, end):
+        acc = acc + b_in[nbr_ids[j]]
+    bbar = bs
+    if end > start:
+        bbar = acc / type(beta)(end - start)
+    one = type(beta)(1.0)
+    return p_in[s] - (bs * beta + bbar * (one - beta))
+
+
+@wp.func
+def _unit_or_zero(m: Any):
+    ln = wp.length(m)
+    if ln > type(ln)(0.0):
+        return m / ln
+    return m
+
+
+@wp.func
+def _hc_energy_term(d: Any, n: Any, lam_cond: Any):
+    # d = target - x; d_n = d . n (n outward); d_t = d - d_n n.
+    # E = |d_t|^2 + lam_cond min(d_n, 0)^2 + max(d_n, 0)^2 and dE/dx = -(2 d_t + 2 (lam neg + pos) n)
+    # (target and n are constants).
+    dn = wp.dot(d, n)
+    dt = d - n * dn
+    zero = type(lam_cond)(0.0)
+    neg = wp.min(dn, zero)
+    pos = wp.max(dn, zero)
+    two = type(lam_cond)(2.0)
+    return wp.dot(dt, dt) + lam_cond * neg * neg + pos * pos, -(dt * two + n * (two * (lam_cond * neg + pos)))
+
+
 @wp.kernel(enable_backward=False)
 def hc_target_kernel(
     p_in: wp.array(dtype=Any),  # [S] vec3
@@ -344,23 +384,8 @@ def hc_target_kernel(
     normal: wp.array(dtype=Any),  # [S] vec3, out: unit outward normal
 ):
     s = wp.tid()
-    bs = b_in[s]
-    acc = bs - bs
-    start = nbr_offsets[s]
-    end = nbr_offsets[s + 1]
-    for j in range(start, end):
-        acc = acc + b_in[nbr_ids[j]]
-    bbar = bs
-    if end > start:
-        bbar = acc / type(beta)(end - start)
-    one = type(beta)(1.0)
-    target[s] = p_in[s] - (bs * beta + bbar * (one - beta))
-    m = normal_acc[s]
-    ln = wp.length(m)
-    if ln > type(beta)(0.0):
-        normal[s] = m / ln
-    else:
-        normal[s] = m
+    target[s] = _hc_target(s, p_in, b_in, nbr_offsets, nbr_ids, beta)
+    normal[s] = _unit_or_zero(normal_acc[s])
 
 
 @wp.kernel(enable_backward=False)
@@ -374,22 +399,38 @@ def hc_energy_kernel(
     energy: wp.array(dtype=Any),  # [S], out
     grad_x: wp.array(dtype=Any),  # [N] vec3, out (each surface vertex written once)
 ):
-    # d = target - x; d_n = d . n (n outward); d_t = d - d_n n.
-    # E = |d_t|^2 + lam_cond min(d_n, 0)^2 + max(d_n, 0)^2.
     s = wp.tid()
     i = surf_ids[s]
-    n = normal[s]
-    d = target[s] - x[i]
-    dn = wp.dot(d, n)
-    dt = d - n * dn
-    zero = type(lam_cond)(0.0)
-    neg = wp.min(dn, zero)
-    pos = wp.max(dn, zero)
-    energy[s] = wp.dot(dt, dt) + lam_cond * neg * neg + pos * pos
+    e, g = _hc_energy_term(target[s] - x[i], normal[s], lam_cond)
+    energy[s] = e
     if with_grad != 0:
-        two = type(lam_cond)(2.0)
-        # dE/dd = 2 d_t + 2 (lam neg + pos) n ; dd/dx = -I (target and n are constants)
-        grad_x[i] = -(dt * two + n * (two * (lam_cond * neg + pos)))
+        grad_x[i] = g
+
+
+@wp.kernel(enable_backward=False)
+def hc_target_energy_kernel(
+    p_in: wp.array(dtype=Any),  # [S] vec3 from hc_umbrella_kernel
+    b_in: wp.array(dtype=Any),  # [S] vec3 from hc_umbrella_kernel
+    nbr_offsets: wp.array(dtype=wp.int32),  # [S + 1]
+    nbr_ids: wp.array(dtype=wp.int32),  # [nnz]
+    normal_acc: wp.array(dtype=Any),  # [S] vec3 area vectors from hc_face_normal_kernel
+    beta: Any,
+    x: wp.array(dtype=Any),  # [N] vec3
+    surf_ids: wp.array(dtype=wp.int32),  # [S]
+    lam_cond: Any,
+    with_grad: int,
+    energy: wp.array(dtype=Any),  # [S], out
+    grad_x: wp.array(dtype=Any),  # [N] vec3, out (each surface vertex written once)
+):
+    # hc_target_kernel and hc_energy_kernel in one pass: the same arithmetic, without the
+    # round trip of the targets and normals through memory (bit for bit the same result).
+    s = wp.tid()
+    i = surf_ids[s]
+    target = _hc_target(s, p_in, b_in, nbr_offsets, nbr_ids, beta)
+    e, g = _hc_energy_term(target - x[i], _unit_or_zero(normal_acc[s]), lam_cond)
+    energy[s] = e
+    if with_grad != 0:
+        grad_x[i] = g
 
 
 @wp.kernel(enable_backward=False)
@@ -527,6 +568,7 @@ def _register_overloads():
         wp.overload(hc_face_normal_kernel, [aV, a3, a3, aV])
         wp.overload(hc_target_kernel, [aV, aV, ai, ai, aV, T, aV, aV])
         wp.overload(hc_energy_kernel, [aV, ai, aV, aV, T, wp.int32, aT, aV])
+        wp.overload(hc_target_energy_kernel, [aV, aV, ai, ai, aV, T, aV, ai, T, wp.int32, aT, aV])
         wp.overload(eikonal_kernel, [aT, aV, a2, T, wp.int32, aT, aT, aV])
         wp.overload(smoothness_kernel, [aT, a2, T, wp.int32, aT, aT])
         wp.overload(phi_edge_kernel, [aT, aV, a2, T, wp.int32, aT, aT, aT, aT])

@@ -219,6 +219,26 @@ def test_hc_targets_with_original_positions_match_reference(setup):
     assert e.item() == pytest.approx(ref.hc_energy_ref(x, bf, 1.0, x_orig=rest, alpha=0.3, beta=0.7).item(), rel=1e-12)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_hc_pass_is_bitwise_the_two_step_one(setup, dtype):
+    # hc_laplacian_energy fuses the target and energy kernels: the same arithmetic, so the
+    # same bits as hc_energy(hc_targets(...)), in the optimiser's float32 as in float64.
+    mesh, rest, x, energies = setup
+    topo = energies.hc_topology(mesh.boundary_faces())
+    x = x.to(dtype)
+    for lam_cond, kw in ((0.0, {}), (1.0, {"x_orig": torch.as_tensor(rest, dtype=dtype), "alpha": 0.3, "beta": 0.7})):
+        target, normal = ops.hc_targets(x, topo, **kw)
+        a = x.clone().requires_grad_(True)
+        b = x.clone().requires_grad_(True)
+        e_two = ops.hc_energy(a, topo, target, normal, lam_cond)
+        e_one = ops.hc_laplacian_energy(b, topo, lam_cond, **kw)
+        e_two.backward()
+        e_one.backward()
+        assert torch.equal(e_one, e_two) and e_one > 0
+        assert torch.equal(a.grad, b.grad) and a.grad.abs().sum() > 0
+    assert not ops.hc_laplacian_energy(x, topo, 1.0).requires_grad
+
+
 def test_hc_stage_one_pushes_dents_out_and_only_stage_two_pulls_bumps_in():
     mesh = box_tetmesh((4, 4, 2), (1.0, 1.0, 0.5))
     energies = TetEnergies(mesh)

@@ -13,7 +13,7 @@ inverse rest edge matrices; ``adjacency`` (M, 4) int32 face neighbours (-1 on th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -34,6 +34,7 @@ __all__ = [
     "vertex_tets",
     "hc_targets",
     "hc_energy",
+    "hc_laplacian_energy",
     "eikonal_loss",
     "smoothness_loss",
     "phi_edge_losses",
@@ -399,10 +400,21 @@ class HCTopology:
     nbr_ids: torch.Tensor
     faces_global: torch.Tensor
     faces_local: torch.Tensor
+    _views: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def num_surface_vertices(self) -> int:
         return int(self.surf_ids.shape[0])
+
+    def views(self) -> tuple:
+        """Warp views ``(surf_ids, nbr_offsets, nbr_ids, faces_global, faces_local)`` of the
+        index arrays (the faces as ``vec3i``), made once: a geometry step uses them on every
+        step, and each view costs a few microseconds of Python."""
+        v = self._views.get("all")
+        if v is None:
+            v = self._views["all"] = (_i(self.surf_ids), _i(self.nbr_offsets), _i(self.nbr_ids),
+                                      _i(self.faces_global, wp.vec3i), _i(self.faces_local, wp.vec3i))
+        return v
 
 
 def hc_topology(boundary_faces, *, device=None) -> HCTopology:
@@ -458,16 +470,60 @@ def hc_targets(x, topo: HCTopology, *, x_orig=None, alpha: float = 0.0, beta: fl
     nacc = torch.zeros_like(p)
     target = torch.empty_like(p)
     normal = torch.empty_like(p)
-    sid, off, nid = _i(topo.surf_ids), _i(topo.nbr_offsets), _i(topo.nbr_ids)
+    p_wp, b_wp, n_wp = _hc_umbrella(x, xo, topo, alpha, p, b, nacc)
+    sid, off, nid, _, _ = topo.views()
     with torch_stream(x):
-        _launch(K_.hc_umbrella_kernel, dim=S, inputs=[_vec(x, V), _vec(xo, V), sid, off, nid, T(alpha)],
-               outputs=[_vec(p, V), _vec(b, V)], device=dev)
-        _launch(K_.hc_face_normal_kernel, dim=topo.faces_global.shape[0],
-               inputs=[_vec(x, V), _i(topo.faces_global, wp.vec3i), _i(topo.faces_local, wp.vec3i)],
-               outputs=[_vec(nacc, V)], device=dev)
-        _launch(K_.hc_target_kernel, dim=S, inputs=[_vec(p, V), _vec(b, V), off, nid, _vec(nacc, V), T(beta)],
+        _launch(K_.hc_target_kernel, dim=S, inputs=[p_wp, b_wp, off, nid, n_wp, T(beta)],
                outputs=[_vec(target, V), _vec(normal, V)], device=dev)
     return target, normal
+
+
+def _hc_umbrella(x, xo, topo: HCTopology, alpha: float, p, b, nacc):
+    """The first two passes of the HC targets: umbrella averages ``p`` and corrections ``b``
+    (S, 3), and the area-weighted normal sums ``nacc`` (S, 3, zero on entry); returns their
+    Warp views."""
+    T, V, M = _types(x)
+    dev = wp_device(x)
+    sid, off, nid, fg, fl = topo.views()
+    x_wp = _vec(x, V)
+    p_wp, b_wp, n_wp = _vec(p, V), _vec(b, V), _vec(nacc, V)
+    with torch_stream(x):
+        _launch(K_.hc_umbrella_kernel, dim=topo.num_surface_vertices, inputs=[x_wp, _vec(xo, V), sid, off, nid, T(alpha)],
+                outputs=[p_wp, b_wp], device=dev)
+        _launch(K_.hc_face_normal_kernel, dim=topo.faces_global.shape[0], inputs=[x_wp, fg, fl], outputs=[n_wp],
+                device=dev)
+    return p_wp, b_wp, n_wp
+
+
+def hc_laplacian_energy(x, topo: HCTopology, lam_cond: float, *, x_orig=None, alpha: float = 0.0,
+                        beta: float = 0.5) -> torch.Tensor:
+    """:func:`hc_energy` of the targets and normals :func:`hc_targets` gives, the last pass of
+    each fused (kernel ``hc_target_energy_kernel``): three launches instead of four, and no
+    target or normal arrays. The same value and gradient, bit for bit (tests/test_tet_energy.py)."""
+    _check_x(x)
+    T, V, M = _types(x)
+    dev = wp_device(x)
+    S = topo.num_surface_vertices
+    xc = x.contiguous()
+    xd = xc.detach()
+    xo = xd if x_orig is None else x_orig.detach().to(x.dtype).contiguous()
+    p = torch.empty((S, 3), dtype=x.dtype, device=x.device)
+    b = torch.empty_like(p)
+    nacc = torch.zeros_like(p)
+    energy = torch.empty(S, dtype=x.dtype, device=x.device)
+    need = x.requires_grad and torch.is_grad_enabled()
+    grad_x = torch.zeros_like(xd) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
+    with torch.no_grad():
+        p_wp, b_wp, n_wp = _hc_umbrella(xd, xo, topo, alpha, p, b, nacc)
+        sid, off, nid, _, _ = topo.views()
+        with torch_stream(x):
+            _launch(K_.hc_target_energy_kernel, dim=S,
+                    inputs=[p_wp, b_wp, off, nid, n_wp, T(beta), _vec(xd, V), sid, T(float(lam_cond)), int(need)],
+                    outputs=[to_wp(energy), _vec(grad_x, V)], device=dev)
+    value = energy.sum()
+    if not need:
+        return value
+    return _fused(value, [(xc, grad_x)])
 
 
 def hc_energy(x, topo: HCTopology, target, normal, lam_cond: float) -> torch.Tensor:
@@ -496,7 +552,7 @@ def hc_energy(x, topo: HCTopology, target, normal, lam_cond: float) -> torch.Ten
         _launch(
             K_.hc_energy_kernel,
             dim=S,
-            inputs=[_vec(x, V), _i(topo.surf_ids), _vec(target.detach().to(x.dtype).contiguous(), V),
+            inputs=[_vec(x, V), topo.views()[0], _vec(target.detach().to(x.dtype).contiguous(), V),
                     _vec(normal.detach().to(x.dtype).contiguous(), V), T(float(lam_cond)), int(need)],
             outputs=[to_wp(energy), _vec(grad_x, V)],
             device=wp_device(x),
