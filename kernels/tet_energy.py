@@ -359,17 +359,21 @@ def _unit_or_zero(m: Any):
 
 
 @wp.func
-def _hc_energy_term(d: Any, n: Any, lam_cond: Any):
+def _hc_energy_at(s: int, i: int, target: Any, n: Any, x: wp.array(dtype=Any), lam_cond: Any, with_grad: int,
+                  energy: wp.array(dtype=Any), grad_x: wp.array(dtype=Any)):
     # d = target - x; d_n = d . n (n outward); d_t = d - d_n n.
-    # E = |d_t|^2 + lam_cond min(d_n, 0)^2 + max(d_n, 0)^2 and dE/dx = -(2 d_t + 2 (lam neg + pos) n)
-    # (target and n are constants).
+    # E = |d_t|^2 + lam_cond min(d_n, 0)^2 + max(d_n, 0)^2, written to energy[s]; with_grad:
+    # dE/dx_i = -(2 d_t + 2 (lam neg + pos) n) to grad_x[i] (target and n are constants).
+    d = target - x[i]
     dn = wp.dot(d, n)
     dt = d - n * dn
     zero = type(lam_cond)(0.0)
     neg = wp.min(dn, zero)
     pos = wp.max(dn, zero)
-    two = type(lam_cond)(2.0)
-    return wp.dot(dt, dt) + lam_cond * neg * neg + pos * pos, -(dt * two + n * (two * (lam_cond * neg + pos)))
+    energy[s] = wp.dot(dt, dt) + lam_cond * neg * neg + pos * pos
+    if with_grad != 0:
+        two = type(lam_cond)(2.0)
+        grad_x[i] = -(dt * two + n * (two * (lam_cond * neg + pos)))
 
 
 @wp.kernel(enable_backward=False)
@@ -400,11 +404,7 @@ def hc_energy_kernel(
     grad_x: wp.array(dtype=Any),  # [N] vec3, out (each surface vertex written once)
 ):
     s = wp.tid()
-    i = surf_ids[s]
-    e, g = _hc_energy_term(target[s] - x[i], normal[s], lam_cond)
-    energy[s] = e
-    if with_grad != 0:
-        grad_x[i] = g
+    _hc_energy_at(s, surf_ids[s], target[s], normal[s], x, lam_cond, with_grad, energy, grad_x)
 
 
 @wp.kernel(enable_backward=False)
@@ -425,12 +425,8 @@ def hc_target_energy_kernel(
     # hc_target_kernel and hc_energy_kernel in one pass: the same arithmetic, without the
     # round trip of the targets and normals through memory (bit for bit the same result).
     s = wp.tid()
-    i = surf_ids[s]
-    target = _hc_target(s, p_in, b_in, nbr_offsets, nbr_ids, beta)
-    e, g = _hc_energy_term(target - x[i], _unit_or_zero(normal_acc[s]), lam_cond)
-    energy[s] = e
-    if with_grad != 0:
-        grad_x[i] = g
+    _hc_energy_at(s, surf_ids[s], _hc_target(s, p_in, b_in, nbr_offsets, nbr_ids, beta), _unit_or_zero(normal_acc[s]),
+                  x, lam_cond, with_grad, energy, grad_x)
 
 
 @wp.kernel(enable_backward=False)

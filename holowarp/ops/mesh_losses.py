@@ -39,20 +39,18 @@ class _MeshViewLosses(torch.autograd.Function):
             wp.launch(K_.view_loss_rows_kernel, dim=H, inputs=[*ins, W], outputs=[to_wp(rows)], device=dev)
             wp.launch(K_.view_loss_total_kernel, dim=1, inputs=[to_wp(rows), H * W],
                       outputs=[to_wp(losses), to_wp(scales)], device=dev)
-        ctx.save_for_backward(alpha, normal, mask, ref_normal, ref_alpha, scales)
-        ctx.prior = prior
-        ctx.mark_non_differentiable(scales)
+        ctx.save_for_backward(alpha, normal, scales)
+        ctx.ins = ins  # the Warp views of the inputs, reused by the backward pass
         return losses
 
     @staticmethod
     def backward(ctx, g_losses):
-        alpha, normal, mask, ref_normal, ref_alpha, scales = ctx.saved_tensors
+        alpha, normal, scales = ctx.saved_tensors
         g_alpha = torch.empty_like(alpha)
         g_normal = torch.empty_like(normal)
-        ins = _inputs(alpha, normal, mask, ref_normal, ref_alpha, ctx.prior)
         with torch_stream(alpha):
             wp.launch(K_.view_loss_backward_kernel, dim=alpha.numel(),
-                      inputs=[*ins, to_wp(scales), to_wp(g_losses.to(torch.float32).contiguous())],
+                      inputs=[*ctx.ins, to_wp(scales), to_wp(g_losses.to(torch.float32).contiguous())],
                       outputs=[to_wp(g_alpha.view(-1)), to_wp(g_normal.view(-1, 3), wp.vec3)], device=wp_device(alpha))
         return g_alpha, g_normal, None, None, None, None
 

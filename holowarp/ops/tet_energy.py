@@ -470,7 +470,7 @@ def hc_targets(x, topo: HCTopology, *, x_orig=None, alpha: float = 0.0, beta: fl
     nacc = torch.zeros_like(p)
     target = torch.empty_like(p)
     normal = torch.empty_like(p)
-    p_wp, b_wp, n_wp = _hc_umbrella(x, xo, topo, alpha, p, b, nacc)
+    p_wp, b_wp, n_wp, _ = _hc_umbrella(x, xo, topo, alpha, p, b, nacc)
     sid, off, nid, _, _ = topo.views()
     with torch_stream(x):
         _launch(K_.hc_target_kernel, dim=S, inputs=[p_wp, b_wp, off, nid, n_wp, T(beta)],
@@ -481,7 +481,7 @@ def hc_targets(x, topo: HCTopology, *, x_orig=None, alpha: float = 0.0, beta: fl
 def _hc_umbrella(x, xo, topo: HCTopology, alpha: float, p, b, nacc):
     """The first two passes of the HC targets: umbrella averages ``p`` and corrections ``b``
     (S, 3), and the area-weighted normal sums ``nacc`` (S, 3, zero on entry); returns their
-    Warp views."""
+    Warp views and that of ``x``."""
     T, V, M = _types(x)
     dev = wp_device(x)
     sid, off, nid, fg, fl = topo.views()
@@ -492,7 +492,7 @@ def _hc_umbrella(x, xo, topo: HCTopology, alpha: float, p, b, nacc):
                 outputs=[p_wp, b_wp], device=dev)
         _launch(K_.hc_face_normal_kernel, dim=topo.faces_global.shape[0], inputs=[x_wp, fg, fl], outputs=[n_wp],
                 device=dev)
-    return p_wp, b_wp, n_wp
+    return p_wp, b_wp, n_wp, x_wp
 
 
 def hc_laplacian_energy(x, topo: HCTopology, lam_cond: float, *, x_orig=None, alpha: float = 0.0,
@@ -514,11 +514,11 @@ def hc_laplacian_energy(x, topo: HCTopology, lam_cond: float, *, x_orig=None, al
     need = x.requires_grad and torch.is_grad_enabled()
     grad_x = torch.zeros_like(xd) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
     with torch.no_grad():
-        p_wp, b_wp, n_wp = _hc_umbrella(xd, xo, topo, alpha, p, b, nacc)
+        p_wp, b_wp, n_wp, x_wp = _hc_umbrella(xd, xo, topo, alpha, p, b, nacc)
         sid, off, nid, _, _ = topo.views()
         with torch_stream(x):
             _launch(K_.hc_target_energy_kernel, dim=S,
-                    inputs=[p_wp, b_wp, off, nid, n_wp, T(beta), _vec(xd, V), sid, T(float(lam_cond)), int(need)],
+                    inputs=[p_wp, b_wp, off, nid, n_wp, T(beta), x_wp, sid, T(float(lam_cond)), int(need)],
                     outputs=[to_wp(energy), _vec(grad_x, V)], device=dev)
     value = energy.sum()
     if not need:
