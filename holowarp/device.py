@@ -17,7 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 from holowarp.errors import InputError
 
 __all__ = ["DeviceError", "resolve_device", "init_warp", "cpu_threads", "set_cpu_threads", "THREADS_ENV", "live_runs",
-           "registered_run", "run_chunks"]
+           "registered_run", "run_chunks", "thread_chunks", "CPU_PIECES"]
 
 #: Environment variable that sets how many CPU threads holowarp's Warp kernel drivers use.
 THREADS_ENV = "HOLOWARP_THREADS"
@@ -211,6 +211,25 @@ def set_cpu_threads(n: int | None) -> None:
         raise DeviceError(f"threads must be >= 1, got {n}")
     _cpu_threads = None if n is None else int(n)
     _shared = None
+
+
+#: Pieces a CPU launch is cut into (:func:`thread_chunks`): fixed, so that launches whose
+#: pieces accumulate into their own buffers sum them in the same order on any thread count.
+CPU_PIECES = 8
+
+
+def thread_chunks(total: int, device: str, *, align: int = 256, always: bool = False) -> list[tuple[int, int]]:
+    """``[(offset, count), ...]`` covering ``range(total)`` in :data:`CPU_PIECES` pieces of
+    whole ``align``-thread blocks (several per thread balance tiles of unequal cost). One
+    piece on CUDA, and on one CPU thread unless ``always``: launches that sum per-piece
+    buffers pass ``always=True`` so that their result never depends on the thread count."""
+    if device != "cpu" or total <= align or (cpu_threads() == 1 and not always):
+        return [(0, total)]
+    blocks = -(-total // align)
+    pieces = min(blocks, CPU_PIECES)
+    edges = [round(blocks * k / pieces) * align for k in range(pieces + 1)]
+    edges[-1] = total
+    return [(a, b - a) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
 def run_chunks(fn, chunks, *, kernel=None, device: str = "cpu") -> list:

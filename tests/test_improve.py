@@ -226,6 +226,36 @@ def test_edge_table_rings_are_cyclic_and_positive(rng):
             assert np.linalg.det(V[t[1:]] - V[t[0]]) > 0
 
 
+@pytest.mark.parametrize("n_major, n_minor", [(50, 7), (9000, 65536), (70000, 300)])
+def test_lex_order_is_the_stable_argsort_of_the_pair_key(rng, n_major, n_minor):
+    # Many ties (few distinct pairs) and the 16-bit radix path as well as the fallback.
+    major = rng.integers(0, n_major, 40000)
+    minor = rng.integers(0, n_minor, 40000)
+    want = np.argsort(major.astype(np.int64) * n_minor + minor, kind="stable")
+    np.testing.assert_array_equal(I._lex_order(major, minor, n_major, n_minor), want)
+
+
+def test_improvement_is_bitwise_the_same_on_one_and_two_cpu_threads():
+    """The quality, closest-face and smoothing launches run in pieces on the CPU threads;
+    every thread writes only its own outputs (smoothing: its own vertex of an independent
+    set), so the improved mesh is the one-thread mesh, bit for bit."""
+    from holowarp.device import cpu_threads, set_cpu_threads
+
+    mesh = plant_slivers(_rough_box(np.random.default_rng(7), cells=(6, 6, 6)), 0.3, np.random.default_rng(8))
+    before, runs = cpu_threads(), []
+    try:
+        for threads in (1, 2):
+            set_cpu_threads(threads)
+            runs.append(I.improve(mesh))
+    finally:
+        set_cpu_threads(before)
+    (m1, p1, i1), (m2, p2, i2) = runs
+    assert i1["after"]["min_dihedral_worst"] > i1["before"]["min_dihedral_worst"]  # it did work
+    np.testing.assert_array_equal(m1.vertices, m2.vertices)
+    np.testing.assert_array_equal(m1.tets, m2.tets)
+    np.testing.assert_array_equal(p1, p2)
+
+
 def test_every_polygon_triangulation_is_enumerated():
     for n, catalan in ((3, 1), (4, 2), (5, 5), (6, 14), (7, 42), (8, 132)):
         tab = I._POLYGONS[n]

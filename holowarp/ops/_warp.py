@@ -11,7 +11,7 @@ import contextlib
 import torch
 import warp as wp
 
-from holowarp.device import cpu_threads, init_warp, run_chunks
+from holowarp.device import CPU_PIECES, init_warp, run_chunks, thread_chunks
 
 __all__ = ["wp_device", "to_wp", "torch_stream", "thread_chunks", "run_chunks", "CPU_PIECES"]
 
@@ -45,21 +45,3 @@ def torch_stream(t: torch.Tensor):
         return wp.ScopedStream(wp.stream_from_torch(t.device))
     return contextlib.nullcontext()
 
-
-#: Pieces a CPU launch is cut into (:func:`thread_chunks`): fixed, so that launches whose
-#: pieces accumulate into their own buffers sum them in the same order on any thread count.
-CPU_PIECES = 8
-
-
-def thread_chunks(total: int, device: str, *, align: int = 256, always: bool = False) -> list[tuple[int, int]]:
-    """``[(offset, count), ...]`` covering ``range(total)`` in :data:`CPU_PIECES` pieces of
-    whole ``align``-thread blocks (several per thread balance tiles of unequal cost). One
-    piece on CUDA, and on one CPU thread unless ``always``: launches that sum per-piece
-    buffers pass ``always=True`` so that their result never depends on the thread count."""
-    if device != "cpu" or total <= align or (cpu_threads() == 1 and not always):
-        return [(0, total)]
-    blocks = -(-total // align)
-    pieces = min(blocks, CPU_PIECES)
-    edges = [round(blocks * k / pieces) * align for k in range(pieces + 1)]
-    edges[-1] = total
-    return [(a, b - a) for a, b in zip(edges[:-1], edges[1:]) if b > a]

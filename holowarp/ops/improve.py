@@ -6,19 +6,30 @@ nothing itself. Everything is float64 except the BVH of :meth:`ImproveKernels.
 point_surface_distance`, which Warp builds in float32 (the distance to the triangle it
 finds is then recomputed exactly in float64 by the caller's NumPy reference).
 No torch here: these operators are not differentiated.
+
+The per-tet, per-point and per-vertex launches are cut into pieces run on both CPU threads
+(:func:`holowarp.device.run_chunks`): every thread of them writes only its own outputs (and,
+in smoothing, its own vertex of an independent set, whose star no other vertex of the set
+touches), so the results are those of one launch, bit for bit, on any thread count.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from holowarp.device import init_warp, resolve_device
+from holowarp.device import init_warp, resolve_device, run_chunks, thread_chunks
 
 __all__ = ["ImproveKernels", "SmoothingPass"]
 
 
 def _i32(wp, a, device):
     return wp.array(np.ascontiguousarray(a, dtype=np.int32), dtype=wp.int32, device=device)
+
+
+def _in_pieces(kernel, n: int, device: str, launch) -> None:
+    """``launch(offset, count)`` over pieces of ``range(n)`` on the CPU threads (one piece
+    on a GPU); ``launch`` slices its per-item arrays to the piece."""
+    run_chunks(launch, thread_chunks(n, device, align=64), kernel=kernel, device=device)
 
 
 class ImproveKernels:
@@ -53,8 +64,10 @@ class ImproveKernels:
             return np.zeros(0)
         t = wp.array(np.ascontiguousarray(T, dtype=np.int32), dtype=wp.vec4i, device=self.device)
         out = wp.empty(len(T), dtype=wp.float64, device=self.device)
-        wp.launch(self.K.tet_quality_kernel, dim=len(T), inputs=[self._positions(V), t, int(mode)], outputs=[out],
-                  device=self.device)
+        x, dev = self._positions(V), self.device
+        _in_pieces(self.K.tet_quality_kernel, len(T), dev,
+                   lambda a, n: wp.launch(self.K.tet_quality_kernel, dim=n, inputs=[x, t[a:a + n], int(mode)],
+                                          outputs=[out[a:a + n]], device=dev))
         return out.numpy()
 
     def closest_faces(self, points: np.ndarray, V: np.ndarray, F: np.ndarray):
@@ -68,8 +81,10 @@ class ImproveKernels:
         pts = wp.array((points - c).astype(np.float32), dtype=wp.vec3, device=self.device)
         dist = wp.empty(len(points), dtype=float, device=self.device)
         face = wp.empty(len(points), dtype=wp.int32, device=self.device)
-        wp.launch(self.K.point_mesh_distance_kernel, dim=len(points), inputs=[mesh.id, pts, 4.0 * span],
-                  outputs=[dist, face], device=self.device)
+        K, dev = self.K, self.device
+        _in_pieces(K.point_mesh_distance_kernel, len(points), dev,
+                   lambda a, n: wp.launch(K.point_mesh_distance_kernel, dim=n, inputs=[mesh.id, pts[a:a + n], 4.0 * span],
+                                          outputs=[dist[a:a + n], face[a:a + n]], device=dev))
         return face.numpy().astype(np.int64), dist.numpy().astype(np.float64)
 
     def smoothing_pass(self, V, T, star, bfaces, proj, mode: int, params) -> "SmoothingPass":
@@ -115,10 +130,12 @@ class SmoothingPass:
         qb, qa, hm = (wp.zeros(n, dtype=wp.float64, device=dev) for _ in range(3))
         bud = wp.array(np.ascontiguousarray(budget, dtype=np.float64), dtype=wp.float64, device=dev)
         mode, *scalars = self.consts
-        wp.launch(self.k.K.smooth_vertices_kernel, dim=n,
-                  inputs=[self.x, self.tets, *self.star, *self.bfaces, _i32(wp, verts, dev), self.proj, bud, mode,
-                          *scalars],
-                  outputs=[qb, qa, hm], device=dev)
+        vs, K = _i32(wp, verts, dev), self.k.K
+        _in_pieces(K.smooth_vertices_kernel, n, dev,
+                   lambda a, m: wp.launch(K.smooth_vertices_kernel, dim=m,
+                                          inputs=[self.x, self.tets, *self.star, *self.bfaces, vs[a:a + m], self.proj,
+                                                  bud, mode, *scalars],
+                                          outputs=[qb[a:a + m], qa[a:a + m], hm[a:a + m]], device=dev))
         return qb.numpy(), qa.numpy(), hm.numpy()
 
     def positions(self) -> np.ndarray:

@@ -353,6 +353,18 @@ class _PolygonTables:
 _POLYGONS = {n: _PolygonTables(n) for n in range(3, 10)}
 
 
+def _lex_order(major: np.ndarray, minor: np.ndarray, n_major: int, n_minor: int) -> np.ndarray:
+    """``np.argsort(major * n_minor + minor, kind="stable")`` for non-negative ``major`` <
+    ``n_major`` and ``minor`` < ``n_minor``, as two stable passes of NumPy's radix sort on
+    16-bit keys where both fit (about four times faster at 200k entries, and the same
+    permutation: a stable sort by ``minor`` then by ``major`` orders by the pair, ties in
+    input order); the edge tables of the flip passes sort that much dozens of times."""
+    if max(n_major, n_minor) > 1 << 16:
+        return np.argsort(major.astype(np.int64) * n_minor + minor, kind="stable")
+    o = np.argsort(minor.astype(np.uint16), kind="stable")
+    return o[np.argsort(major.astype(np.uint16)[o], kind="stable")]
+
+
 def _edge_keys(u, v, n):
     lo, hi = np.minimum(u, v), np.maximum(u, v)
     return lo.astype(np.int64) * n + hi
@@ -378,9 +390,9 @@ class _EdgeTable:
         swap = u > v
         u, v = np.where(swap, v, u), np.where(swap, u, v)
         a, b = np.where(swap, b, a), np.where(swap, a, b)
-        key = u * N + v
-        order = np.argsort(key, kind="stable")
-        key, u, v, a, b, tet = key[order], u[order], v[order], a[order], b[order], tet[order]
+        order = _lex_order(u, v, N, N)
+        key = (u * N + v)[order]
+        a, b, tet = a[order], b[order], tet[order]
         start = np.r_[True, key[1:] != key[:-1]]
         gid = np.cumsum(start) - 1
         first = np.flatnonzero(start)
@@ -388,14 +400,15 @@ class _EdgeTable:
         n = np.diff(np.r_[first, len(key)])
         # An entry whose 'from' vertex is no entry's 'to' vertex opens its (open) fan.
         ka = gid * N + a
-        kb = np.sort(gid * N + b)
+        kb = gid * N + b
+        kb = kb[_lex_order(gid, b, E, N)]
         pos = np.minimum(np.searchsorted(kb, ka), len(kb) - 1)
         opener = kb[pos] != ka
         boundary = np.zeros(E, dtype=bool)
         boundary[gid[opener]] = True
         st = first.copy()
         st[gid[opener]] = np.flatnonzero(opener)
-        ka_order = np.argsort(ka, kind="stable")
+        ka_order = _lex_order(gid, a, E, N)
         ka_sorted = ka[ka_order]
         keep = np.flatnonzero(n <= R)
         rt = np.full((E, R), -1, dtype=np.int64)
@@ -404,23 +417,25 @@ class _EdgeTable:
         rt[keep, 0] = tet[cur]
         rv[keep, 0] = a[cur]
         rv[keep, 1] = b[cur]
-        # Walk every ring at once: the successor is the entry whose 'from' is our 'to'.
+        # Walk every ring at once: the successor is the entry whose 'from' is our 'to',
+        # looked up once for every entry (queries in group order: a fast search).
+        want = gid * N + b
+        p = np.minimum(np.searchsorted(ka_sorted, want), len(ka_sorted) - 1)
+        found, succ = ka_sorted[p] == want, ka_order[p]
         for step in range(1, R):
             live = np.flatnonzero(n[keep] > step)
             if len(live) == 0:
                 break
             g, c = keep[live], cur[live]
-            want = gid[c] * N + b[c]
-            p = np.minimum(np.searchsorted(ka_sorted, want), len(ka_sorted) - 1)
-            ok = ka_sorted[p] == want
+            ok = found[c]
             n[g[~ok]] = R + 1  # broken ring: kept out of every operation
-            nxt = ka_order[p[ok]]
+            nxt = succ[c[ok]]
             rt[g[ok], step] = tet[nxt]
             rv[g[ok], step + 1] = b[nxt]
             cur[live[ok]] = nxt
         closed = np.flatnonzero(~boundary & (n <= R))
         rv[closed, n[closed]] = -1  # a closed ring came back to p_0
-        self.u, self.v, self.n, self.boundary = u[first], v[first], n, boundary
+        self.u, self.v, self.n, self.boundary = u[order[first]], v[order[first]], n, boundary
         self.tets, self.verts, self.keys, self.N = rt, rv, key[first], N
 
     def contains(self, a, b) -> np.ndarray:
