@@ -105,8 +105,19 @@ class TetGaussians:
         """Surfel centres [M, 3]: the tet centroids (beta = 1/4 each), differentiable in x.
 
         ``vertices`` (V, 3) overrides the model's positions (e.g. a block's rest shape)."""
+        from holowarp.ops.tet_energy import tet_mean
+
         v = self.vertices if vertices is None else vertices
-        return v[self.tets].mean(dim=1)
+        return tet_mean(v, self._tets_i32())
+
+    def _tets_i32(self) -> torch.Tensor:
+        """``tets`` as int32 for the Warp ops, converted once per topology (cached against the
+        tensor object and its in-place version)."""
+        key = (id(self.tets), self.tets._version)
+        cached = getattr(self, "_tets32", None)
+        if cached is None or cached[0] != key:
+            cached = self._tets32 = (key, self.tets.to(torch.int32).contiguous(), self.tets)
+        return cached[1]
 
     def sharpness(self) -> torch.Tensor:
         """s * kappa clamped to ``kappa_clamp`` (method.md §5)."""
@@ -114,7 +125,9 @@ class TetGaussians:
 
     def field_opacities(self) -> torch.Tensor:
         """Opacities [M] from the vertex field: sigmoid(-s kappa mean(phi[tet]))."""
-        phi_bar = self.phi[self.tets].mean(dim=1)
+        from holowarp.ops.tet_energy import tet_mean
+
+        phi_bar = tet_mean(self.phi, self._tets_i32())
         return torch.sigmoid(-self.sharpness() * phi_bar)
 
     def opacities(self) -> torch.Tensor:

@@ -46,6 +46,8 @@ __all__ = [
     "smoothness_kernel",
     "phi_edge_kernel",
     "scale_vec3_kernel",
+    "tet_mean_kernel",
+    "tet_mean_backward_kernel",
 ]
 
 
@@ -541,6 +543,34 @@ def scale_vec3_kernel(
 # --- explicit float32 / float64 overloads (compiled together with the module) -----------
 
 
+@wp.kernel(enable_backward=False)
+def tet_mean_kernel(
+    values: wp.array(dtype=Any),  # [N] per-vertex values (vec3 positions or scalars)
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    quarter: Any,  # 0.25 in the values' precision
+    out: wp.array(dtype=Any),  # [M] out: the mean over each tet's four vertices
+):
+    # Summed in vertex order, then scaled by 1/4 (exact): the rounding of torch's
+    # values[tets].mean(dim=1), which this replaces in the surfel model.
+    e = wp.tid()
+    t = tets[e]
+    out[e] = (((values[t[0]] + values[t[1]]) + values[t[2]]) + values[t[3]]) * quarter
+
+
+@wp.kernel(enable_backward=False)
+def tet_mean_backward_kernel(
+    grad_out: wp.array(dtype=Any),  # [M] dLoss/d mean
+    tets: wp.array(dtype=wp.vec4i),  # [M]
+    quarter: Any,  # 0.25 in the values' precision
+    grad_values: wp.array(dtype=Any),  # [N] accumulated, tet by tet in order
+):
+    e = wp.tid()
+    t = tets[e]
+    g = grad_out[e] * quarter
+    for j in range(4):
+        wp.atomic_add(grad_values, t[j], g)
+
+
 def _register_overloads():
     for T, V, M in ((wp.float32, wp.vec3f, wp.mat33f), (wp.float64, wp.vec3d, wp.mat33d)):
         aV, aM, aT = wp.array(dtype=V), wp.array(dtype=M), wp.array(dtype=T)
@@ -569,6 +599,9 @@ def _register_overloads():
         wp.overload(smoothness_kernel, [aT, a2, T, wp.int32, aT, aT])
         wp.overload(phi_edge_kernel, [aT, aV, a2, T, wp.int32, aT, aT, aT, aT])
         wp.overload(scale_vec3_kernel, [aV, aT, aV])
+        for a in (aV, aT):
+            wp.overload(tet_mean_kernel, [a, a4, T, a])
+            wp.overload(tet_mean_backward_kernel, [a, a4, T, a])
 
 
 _register_overloads()

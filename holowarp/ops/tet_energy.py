@@ -30,6 +30,7 @@ __all__ = [
     "inversion_penalty",
     "tet_energies",
     "signed_volumes",
+    "tet_mean",
     "revert_floor_crossings",
     "vertex_tets",
     "hc_targets",
@@ -302,6 +303,53 @@ def tet_energies(x, tets, dm_inv, adjacency, weights, p: float = 2.0):
         raise ValueError(f"tet_energies: p must be >= 1, got {p}")
     return _TetEnergies.apply(x.contiguous(), tets.contiguous(), dm_inv.to(x.dtype).contiguous(),
                               adjacency.contiguous(), weights.to(x.dtype).contiguous(), p)
+
+
+# --- per-tet means (the surfels' centres and field opacities) -----------------------------
+
+
+class _TetMean(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, values, tets):
+        T, V, M = _types(values)
+        W = V if values.ndim == 2 else None
+        out = torch.empty((tets.shape[0], *values.shape[1:]), dtype=values.dtype, device=values.device)
+        with torch_stream(values):
+            _launch(K_.tet_mean_kernel, dim=tets.shape[0], inputs=[to_wp(values, W), _i(tets, wp.vec4i), T(0.25)],
+                    outputs=[to_wp(out, W)], device=wp_device(values))
+        ctx.save_for_backward(tets)
+        ctx.shape = values.shape
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        (tets,) = ctx.saved_tensors
+        T, V, M = _types(grad)
+        W = V if grad.ndim == 2 else None
+        grad_values = torch.zeros(ctx.shape, dtype=grad.dtype, device=grad.device)
+        with torch_stream(grad):
+            _launch(K_.tet_mean_backward_kernel, dim=tets.shape[0],
+                    inputs=[to_wp(grad.contiguous(), W), _i(tets, wp.vec4i), T(0.25)], outputs=[to_wp(grad_values, W)],
+                    device=wp_device(grad))
+        return grad_values, None
+
+
+def tet_mean(values: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
+    """``values[tets].mean(dim=1)``, differentiable in ``values``: the mean over each tet's
+    four vertices of per-vertex ``values`` (N, 3) positions or (N,) scalars, float32 or
+    float64, giving (M, 3) or (M,) for ``tets`` (M, 4) int32.
+
+    One Warp pass each way instead of torch's gather, sum, divide and scatter-add (about 6 ms
+    forward and backward for the surfel model's centres and field opacities at 21k tets on
+    the CPU, against well under 1 ms); the same rounding: the four values are summed in
+    vertex order and scaled by 1/4, and the backward adds each tet's share to its vertices
+    tet by tet (on the CPU in order, so bit for bit the torch result)."""
+    if not isinstance(values, torch.Tensor) or values.ndim not in (1, 2) or (values.ndim == 2 and values.shape[1] != 3):
+        raise ValueError(f"tet_mean: values must be a (N, 3) or (N,) float tensor, got {getattr(values, 'shape', type(values))}")
+    _types(values)
+    if tets.ndim != 2 or tets.shape[1] != 4 or tets.dtype != torch.int32:
+        raise ValueError(f"tet_mean: tets must be a (M, 4) int32 tensor, got {tuple(tets.shape)} {tets.dtype}")
+    return _TetMean.apply(values.contiguous(), tets.contiguous())
 
 
 def signed_volumes(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
