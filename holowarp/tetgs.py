@@ -113,11 +113,10 @@ class TetGaussians:
     def _tets_i32(self) -> torch.Tensor:
         """``tets`` as int32 for the Warp ops, converted once per topology (cached against the
         tensor object and its in-place version)."""
-        key = (id(self.tets), self.tets._version)
         cached = getattr(self, "_tets32", None)
-        if cached is None or cached[0] != key:
-            cached = self._tets32 = (key, self.tets.to(torch.int32).contiguous(), self.tets)
-        return cached[1]
+        if cached is None or cached[0] is not self.tets or cached[1] != self.tets._version:
+            cached = self._tets32 = (self.tets, self.tets._version, self.tets.to(torch.int32).contiguous())
+        return cached[2]
 
     def sharpness(self) -> torch.Tensor:
         """s * kappa clamped to ``kappa_clamp`` (method.md §5)."""

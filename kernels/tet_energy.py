@@ -540,7 +540,7 @@ def scale_vec3_kernel(
     dst[i] = src[i] * scale[0]
 
 
-# --- explicit float32 / float64 overloads (compiled together with the module) -----------
+# --- per-tet means (the surfel model's centres and field opacities) ---------------------
 
 
 @wp.kernel(enable_backward=False)
@@ -569,6 +569,9 @@ def tet_mean_backward_kernel(
     g = grad_out[e] * quarter
     for j in range(4):
         wp.atomic_add(grad_values, t[j], g)
+
+
+# --- explicit float32 / float64 overloads (compiled together with the module) -----------
 
 
 def _register_overloads():

@@ -339,9 +339,9 @@ def tet_mean(values: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
     four vertices of per-vertex ``values`` (N, 3) positions or (N,) scalars, float32 or
     float64, giving (M, 3) or (M,) for ``tets`` (M, 4) int32.
 
-    One Warp pass each way instead of torch's gather, sum, divide and scatter-add (about 6 ms
-    forward and backward for the surfel model's centres and field opacities at 21k tets on
-    the CPU, against well under 1 ms); the same rounding: the four values are summed in
+    One Warp pass each way instead of torch's gather, sum, divide and scatter-add (forward
+    and backward of the surfel model's centres and field opacities at 21k tets on the CPU:
+    3.7 ms in torch, 0.7 ms here); the same rounding: the four values are summed in
     vertex order and scaled by 1/4, and the backward adds each tet's share to its vertices
     tet by tet (on the CPU in order, so bit for bit the torch result)."""
     if not isinstance(values, torch.Tensor) or values.ndim not in (1, 2) or (values.ndim == 2 and values.shape[1] != 3):
