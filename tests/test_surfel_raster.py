@@ -294,6 +294,17 @@ def test_bad_inputs_raise_errors_naming_the_argument(change, match):
         rasterize_surfels(**args)
 
 
+def test_more_surfels_than_a_list_entry_can_rank_are_refused(monkeypatch):
+    # A list entry packs the depth rank into 23 bits; the limit is lowered here so that the
+    # check can be seen without allocating 2^23 surfels.
+    import holowarp.ops.surfels as S
+
+    monkeypatch.setattr(S.K_, "MAX_SURFELS", 3)
+    with pytest.raises(ValueError, match="at most 3 surfels per call"):
+        rasterize_surfels(torch.zeros(4, 3), torch.ones(4, 4), torch.ones(4, 2), torch.ones(4) * 0.5,
+                          torch.zeros(4, 3), torch.eye(4), torch.eye(3), 8, 8)  # fmt: skip
+
+
 def test_reference_in_checkpointed_pixel_chunks_matches_the_single_pass(rng):
     # The benchmark runs the reference in chunks to bound memory; chunking must not change it.
     width, height = 24, 20

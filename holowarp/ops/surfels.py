@@ -150,15 +150,14 @@ class _Binning:
             outputs=[to_wp(self.list_start), to_wp(self.list_end)],
             device=dev,
         )
-        self.ranked_boxes = wp.empty(n, dtype=wp.vec4i, device=dev)
         self.ranked_splats = wp.empty(n, dtype=K_.splat_record, device=dev)
         wp.launch(
             K_.pack_splats,
             dim=n,
-            inputs=[order_wp, boxes_wp, to_wp(h2, wp.vec3), to_wp(e0, wp.vec2), to_wp(e1, wp.vec2),
+            inputs=[order_wp, to_wp(h2, wp.vec3), to_wp(e0, wp.vec2), to_wp(e1, wp.vec2),
                     to_wp(pqd, wp.vec3), to_wp(centers, wp.vec2), to_wp(center_frac, wp.vec2), to_wp(normals, wp.vec3),
                     to_wp(opacities), to_wp(colors, wp.vec3)],
-            outputs=[self.ranked_boxes, self.ranked_splats],
+            outputs=[self.ranked_splats],
             device=dev,
         )  # fmt: skip
 
@@ -173,7 +172,7 @@ def _backward_launches(bins, bg, width: int, height: int, n: int, like: torch.Te
     accumulating into its own zeroed gradient buffers, summed in slice order afterwards, so a
     given thread count always gives the same result. Returns the 8 gradient tensors."""
     dev = wp_device(like)
-    ins = [to_wp(bins.list_start), to_wp(bins.list_ranks), to_wp(bins.order), bins.ranked_boxes, bins.ranked_splats,
+    ins = [to_wp(bins.list_start), to_wp(bins.list_ranks), to_wp(bins.order), bins.ranked_splats,
            bg, int(width), int(height), bins.tiles_x]
     total = bins.tiles_x * bins.tiles_y * K_.TILE_SIZE * K_.TILE_SIZE
 
@@ -228,8 +227,8 @@ class RasterizeSurfels(torch.autograd.Function):
             median_pos.fill_(-1)
         else:
             dev = wp_device(h2)
-            ins = [to_wp(bins.list_start), to_wp(bins.list_end), to_wp(bins.list_ranks), bins.ranked_boxes,
-                   bins.ranked_splats, bg, int(width), int(height), bins.tiles_x]
+            ins = [to_wp(bins.list_start), to_wp(bins.list_end), to_wp(bins.list_ranks), bins.ranked_splats, bg,
+                   int(width), int(height), bins.tiles_x]
             outs = [to_wp(rgb.view(npix, 3), wp.vec3), to_wp(alpha.view(npix)), to_wp(normal.view(npix, 3), wp.vec3),
                     to_wp(depth.view(npix)), to_wp(median.view(npix)), to_wp(dist.view(npix)), to_wp(trans),
                     to_wp(last), to_wp(median_pos), to_wp(m2)]  # fmt: skip
@@ -298,6 +297,9 @@ def check_surfel_inputs(means, quats, scales, opacities, colors, viewmat, K, wid
     if means.ndim != 2 or means.shape[1] != 3:
         raise _shape_error("means", means, "[N, 3]")
     n = means.shape[0]
+    if n > K_.MAX_SURFELS:
+        raise ValueError(f"rasterize_surfels: at most {K_.MAX_SURFELS} surfels per call (the lists pack a depth rank "
+                         f"into 23 bits), got {n}")
     for name, t, shape in (("quats", quats, (n, 4)), ("scales", scales, (n, 2)), ("opacities", opacities, (n,)),
                            ("colors", colors, (n, 3)), ("viewmat", viewmat, (4, 4)), ("K", K, (3, 3))):  # fmt: skip
         if tuple(t.shape) != shape:
