@@ -27,6 +27,8 @@ _ROWS = [
     ("recall", "recall @0.01", ""),
     ("f_score", "F-score @0.01", ""),
     ("f_score_005", "F-score @0.005", ""),
+    ("precision_005", "precision @0.005", "prediction near GT"),
+    ("recall_005", "recall @0.005", "GT near prediction"),
     ("normal_consistency", "normal consistency", ""),
     ("volume_iou", "volume IoU", ""),
     ("edge_precision", "edge precision @0.005", "NMC edge samples"),

@@ -159,6 +159,22 @@ def test_edge_precision_recall_count_edge_samples_within_tau():
     assert math.isnan(none["edge_precision"]) and none["edge_recall"] == 0 and none["edge_f1"] == 0
 
 
+def test_precision_and_recall_at_both_thresholds_count_the_samples_within_them(rng):
+    # GT: a 20 x 20 grid of spacing 0.05 on z = 0, in random order. Prediction: 200 of its
+    # points exactly (d = 0), the next 100 lifted by 0.007 (within 0.01, not within 0.005), and
+    # 50 points far above. The other 100 GT points are >= 0.05 from every prediction sample.
+    g = np.stack(np.meshgrid(np.arange(20), np.arange(20), indexing="ij"), -1).reshape(-1, 2) * 0.05
+    gt = np.concatenate([g, np.zeros((400, 1))], 1)[rng.permutation(400)]
+    far = np.concatenate([rng.uniform(0, 1, (50, 2)), np.full((50, 1), 0.5)], 1)
+    pred = np.concatenate([gt[:200], gt[200:300] + [0, 0, 0.007], far])
+    up = lambda k: np.tile([0.0, 0.0, 1.0], (k, 1))  # noqa: E731
+    m = chamfer_metrics(pred, up(len(pred)), gt, up(400), tau=0.01, tau_fine=0.005)
+    assert m["precision"] == pytest.approx(300 / 350) and m["recall"] == pytest.approx(300 / 400)
+    assert m["precision_005"] == pytest.approx(200 / 350) and m["recall_005"] == pytest.approx(200 / 400)
+    p, r = 200 / 350, 200 / 400
+    assert m["f_score_005"] == pytest.approx(2 * p * r / (p + r))
+
+
 def test_chamfer_metrics_of_identical_samples_are_perfect(rng):
     p, n, _ = sample_surface(*_sphere(0.5, subdivisions=3), 5000, rng=rng)
     m = chamfer_metrics(p, n, p, n)

@@ -41,8 +41,9 @@ OBJECTS = {
     "fandisk": (SHARED / "fandisk" / "fandisk.obj", "y", 0, False),
 }
 COMPARED = ("chamfer_l1", "chamfer_l2", "hausdorff", "precision", "recall", "f_score", "f_score_005",
-            "normal_consistency", "volume_iou", "concave_chamfer", "edge_f1")
-HIGHER_IS_BETTER = {"precision", "recall", "f_score", "f_score_005", "normal_consistency", "volume_iou", "edge_f1"}
+            "precision_005", "recall_005", "normal_consistency", "volume_iou", "concave_chamfer", "edge_f1")
+HIGHER_IS_BETTER = {"precision", "recall", "f_score", "f_score_005", "precision_005", "recall_005",
+                    "normal_consistency", "volume_iou", "edge_f1"}
 
 
 def build_parser() -> argparse.ArgumentParser:

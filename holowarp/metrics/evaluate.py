@@ -6,7 +6,7 @@ when a dataset is given):
 - surface (evaluation frame, 100k area-weighted samples per surface): ``chamfer_l1``,
   ``chamfer_l2``, ``hausdorff``, ``precision``, ``recall``, ``f_score`` (tau = 0.01),
   ``normal_consistency``, ``edge_precision``, ``edge_recall``, ``edge_f1``, ``f_score_005``
-  (tau = 0.005), ``chamfer_l1_floor`` (GT against itself at the same sample count: what a
+  with its ``precision_005`` and ``recall_005`` (tau = 0.005), ``chamfer_l1_floor`` (GT against itself at the same sample count: what a
   perfect prediction scores) and ``concave_chamfer`` (the mean distance to the prediction of
   the GT samples deeper than 0.01 inside the GT's convex hull, where silhouettes are blind;
   NaN for a convex GT);
@@ -87,6 +87,8 @@ METRIC_KEYS = (
     "concave_chamfer",
     "boundary_shells",
     "overlapping_edges",
+    "precision_005",
+    "recall_005",
 )
 #: The keys that describe the prediction's tets (``None`` for a surface prediction).
 #: ``boundary_shells``: connected pieces of the boundary surface. One object without a

@@ -9,8 +9,10 @@ Euclidean distances ``d``.
 - Chamfer-L2 = 0.5 (mean d^2(pred->gt) + mean d^2(gt->pred));
 - Hausdorff = max of the two one-sided maxima;
 - precision = fraction of pred samples within ``tau`` of the gt samples, recall the
-  converse, F-score their harmonic mean (tau = 0.01; ``f_score_005`` at tau = 0.005, where
-  staircases and pits of a coarse surface show);
+  converse, F-score their harmonic mean (tau = 0.01; ``f_score_005``, ``precision_005`` and
+  ``recall_005`` at tau = 0.005, where staircases and pits of a coarse surface show. The two
+  sides tell a missing part from a wrong one: a cavity carved part of the way down misses the
+  recall of a lid and, having more area, loses more precision);
 - normal consistency = 0.5 (mean |n_pred . n_nearest gt| + mean |n_gt . n_nearest pred|);
 - the Chamfer floor: Chamfer-L1 of the ground truth against itself (two independent sample
   sets of the same size), the value a perfect prediction would get (:func:`chamfer_floor`);
@@ -116,7 +118,8 @@ def _prf(d_p2g, d_g2p, tau):
 
 def chamfer_metrics(pred_pts, pred_n, gt_pts, gt_n, *, tau: float = 0.01, tau_fine: float = 0.005, trees=None,
                     distances: dict | None = None) -> dict:
-    """Chamfer-L1/L2, Hausdorff, precision/recall/F-score at ``tau`` and ``tau_fine``,
+    """Chamfer-L1/L2, Hausdorff, precision/recall/F-score at ``tau`` and ``tau_fine`` (keys
+    ``precision``, ``recall``, ``f_score``; ``precision_005``, ``recall_005``, ``f_score_005``),
     normal consistency.
 
     Args:
@@ -132,7 +135,7 @@ def chamfer_metrics(pred_pts, pred_n, gt_pts, gt_n, *, tau: float = 0.01, tau_fi
     d_p2g, i_p2g = nearest(pred_pts, None, tree=tg)
     d_g2p, i_g2p = nearest(gt_pts, None, tree=tp)
     prec, rec, f = _prf(d_p2g, d_g2p, tau)
-    f_fine = _prf(d_p2g, d_g2p, tau_fine)[2]
+    prec_fine, rec_fine, f_fine = _prf(d_p2g, d_g2p, tau_fine)
     if distances is not None:
         distances.update(pred_to_gt=d_p2g, gt_to_pred=d_g2p)
     nc_p = np.abs(np.einsum("ij,ij->i", pred_n, gt_n[i_p2g])).mean()
@@ -146,6 +149,8 @@ def chamfer_metrics(pred_pts, pred_n, gt_pts, gt_n, *, tau: float = 0.01, tau_fi
         "f_score": f,
         "normal_consistency": float(0.5 * (nc_p + nc_g)),
         "f_score_005": f_fine,
+        "precision_005": prec_fine,
+        "recall_005": rec_fine,
     }
 
 
