@@ -6,10 +6,10 @@ when a dataset is given):
 - surface (evaluation frame, 100k area-weighted samples per surface): ``chamfer_l1``,
   ``chamfer_l2``, ``hausdorff``, ``precision``, ``recall``, ``f_score`` (tau = 0.01),
   ``normal_consistency``, ``edge_precision``, ``edge_recall``, ``edge_f1``, ``f_score_005``
-  with its ``precision_005`` and ``recall_005`` (tau = 0.005), ``chamfer_l1_floor`` (GT against itself at the same sample count: what a
-  perfect prediction scores) and ``concave_chamfer`` (the mean distance to the prediction of
-  the GT samples deeper than 0.01 inside the GT's convex hull, where silhouettes are blind;
-  NaN for a convex GT);
+  with its ``precision_005`` and ``recall_005`` (tau = 0.005), ``chamfer_l1_floor`` (GT
+  against itself at the same sample count: what a perfect prediction scores) and
+  ``concave_chamfer`` (the mean distance to the prediction of the GT samples deeper than
+  0.01 inside the GT's convex hull, where silhouettes are blind; NaN for a convex GT);
 - volume: ``volume_iou`` (winding-number inside test on 100k uniform points);
 - topology of the prediction: ``components`` (face-connected tet components), ``manifold``
   (boundary edge- and vertex-manifold), ``genus`` (of the boundary, summed over its shells),
