@@ -83,7 +83,8 @@ class ImproveKernels:
         face = wp.empty(len(points), dtype=wp.int32, device=self.device)
         K, dev = self.K, self.device
         _in_pieces(K.point_mesh_distance_kernel, len(points), dev,
-                   lambda a, n: wp.launch(K.point_mesh_distance_kernel, dim=n, inputs=[mesh.id, pts[a:a + n], 4.0 * span],
+                   lambda a, n: wp.launch(K.point_mesh_distance_kernel, dim=n,
+                                          inputs=[mesh.id, pts[a:a + n], 4.0 * span],
                                           outputs=[dist[a:a + n], face[a:a + n]], device=dev))
         return face.numpy().astype(np.int64), dist.numpy().astype(np.float64)
 

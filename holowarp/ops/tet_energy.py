@@ -345,7 +345,8 @@ def tet_mean(values: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
     vertex order and scaled by 1/4, and the backward adds each tet's share to its vertices
     tet by tet (on the CPU in order, so bit for bit the torch result)."""
     if not isinstance(values, torch.Tensor) or values.ndim not in (1, 2) or (values.ndim == 2 and values.shape[1] != 3):
-        raise ValueError(f"tet_mean: values must be a (N, 3) or (N,) float tensor, got {getattr(values, 'shape', type(values))}")
+        got = getattr(values, "shape", type(values))
+        raise ValueError(f"tet_mean: values must be a (N, 3) or (N,) float tensor, got {got}")
     _types(values)
     if tets.ndim != 2 or tets.shape[1] != 4 or tets.dtype != torch.int32:
         raise ValueError(f"tet_mean: tets must be a (M, 4) int32 tensor, got {tuple(tets.shape)} {tets.dtype}")
