@@ -126,6 +126,10 @@ def _run(args) -> int:
         f"mean edges (bound {info['surface_move_bound_mean_edges']:g}), {flips} flips, {splits} splits, "
         f"{info['vertices_smoothed']} vertices smoothed, {info['seconds']:.1f} s{note}"
     )
+    from holowarp.stages.improve import missed_targets
+
+    for line in missed_targets(info):
+        print(f"warning: {line}", file=sys.stderr)
     return 0
 
 

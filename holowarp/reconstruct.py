@@ -151,6 +151,11 @@ def _run(args) -> int:
         print(f"  object {o['name']}: {o['tets']} tets, {o['components']} component(s), manifold={o['manifold']}, "
               f"genus={o['genus']}, inverted={o['inverted']}"
               + (f", chamfer_l1 {om['chamfer_l1']:.4f}" if om else ""))
+    if report.get("improve"):
+        from holowarp.stages.improve import missed_targets
+
+        for line in missed_targets(report["improve"]):
+            print(f"warning: element improvement: {line}", file=sys.stderr)
     if report.get("scene"):
         print(f"simulate the scene: python -m holowarp.simulate {args.out}/tetmesh.vtu --scene "
               f"{report['outputs']['scene_toml']} --out SIM")

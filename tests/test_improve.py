@@ -496,6 +496,50 @@ def test_zero_surface_budget_keeps_the_boundary_exactly(rng):
     assert info["after"]["quality_min"] >= info["before"]["quality_min"]
 
 
+def test_element_targets_compare_each_value_with_method_md_s_bound():
+    at = {"min_dihedral_worst": 10.0, "min_dihedral_mean": 40.0, "aspect_ratio_mean": 1.8, "eta_min": 0.01}
+    t = I.element_targets(at)
+    assert set(t) == set(I.TARGETS) and all(v["met"] for v in t.values())  # the bounds themselves pass
+    assert t["min_dihedral_worst"]["target"] == ">= 10" and t["aspect_ratio_mean"]["target"] == "<= 1.8"
+    off = {"min_dihedral_worst": 9.99, "min_dihedral_mean": 39.9, "aspect_ratio_mean": 1.81, "eta_min": 0.0099}
+    t = I.element_targets(off)
+    assert not any(v["met"] for v in t.values())
+    assert t["eta_min"]["value"] == 0.0099
+
+
+def test_a_slab_too_thin_to_improve_reports_the_missed_targets_and_the_cli_warns(tmp_path, capsys):
+    """With the surface held (bound 0), a slab 0.03 thick under 0.25 x 0.25 cells keeps flat
+    tets whatever the stage does: the report says which targets it missed and how many tets
+    lie below the dihedral bound, and the command line warns on stderr."""
+    mesh = box_tetmesh((4, 4, 1), (1.0, 1.0, 0.03))
+    src, dst, rep = tmp_path / "slab.npz", tmp_path / "out.npz", tmp_path / "r.json"
+    write_tetmesh(src, mesh)
+    rc, out, err = _run(capsys, src, dst, "--max-surface-move", "0", "--json", rep, "--quiet")
+    assert rc == 0 and out.startswith(f"wrote {dst}")
+    r = json.loads(rep.read_text())
+    t = r["targets"]
+    assert not t["min_dihedral_worst"]["met"] and not t["aspect_ratio_mean"]["met"] and t["eta_min"]["met"]
+    assert t["min_dihedral_worst"]["value"] == pytest.approx(r["after"]["min_dihedral_worst"])
+    res = read_tetmesh(dst)
+    assert t["min_dihedral_worst"]["tets_below"] == int((res.quality()["min_dihedral_deg"] < 10.0).sum()) > 0
+    lines = [ln for ln in err.splitlines() if ln.startswith("warning:")]
+    assert len(lines) == 3  # worst and mean dihedral, mean aspect ratio
+    assert "worst minimum dihedral angle (deg)" in lines[0] and "method.md §7b's target >= 10" in lines[0]
+    assert f"({t['min_dihedral_worst']['tets_below']} tets below)" in lines[0]
+
+
+def test_missed_targets_name_each_miss_in_one_line():
+    t = I.element_targets({"min_dihedral_worst": 7.4, "min_dihedral_mean": 47.0, "aspect_ratio_mean": 1.6,
+                           "eta_min": 0.004})
+    t["min_dihedral_worst"]["tets_below"] = 3
+    lines = I.missed_targets({"targets": t})
+    assert len(lines) == 2
+    assert lines[0].startswith("worst minimum dihedral angle (deg) is 7.4 (3 tets below), outside method.md §7b's "
+                               "target >= 10")
+    assert lines[1].startswith("smallest shape quality eta is 0.004, outside method.md §7b's target >= 0.01")
+    assert I.missed_targets({}) == []  # a report from before the targets existed
+
+
 def test_improve_refuses_inverted_tets_and_empty_meshes():
     with pytest.raises(ValueError, match="inverted"):
         I.improve(TetMesh(REGULAR, [[0, 1, 2, 3]]))

@@ -102,6 +102,9 @@ from holowarp.stages.cleanup import overlap_ends
 from holowarp.tetmesh import TET_EDGE_FACES, TET_EDGES, TET_FACES, TetMesh
 
 __all__ = [
+    "TARGETS",
+    "element_targets",
+    "missed_targets",
     "ImproveConfig",
     "QUALITY_MEASURES",
     "ETA_HISTOGRAM_EDGES",
@@ -187,6 +190,46 @@ def _summary(V: np.ndarray, T: np.ndarray, q: np.ndarray) -> dict:
         "eta_min": float(shape_quality_eta(V, T).min()),
         "inverted": int(np.count_nonzero(TetMesh(V, T, validate=False).signed_volumes() <= 0)),
     }
+
+
+#: method.md §7b's targets for the improved elements, by :func:`_summary` key: (">=" or
+#: "<=", bound). eta: Newton's ``validate_tet_mesh`` threshold.
+TARGETS = {
+    "min_dihedral_worst": (">=", 10.0),
+    "min_dihedral_mean": (">=", 40.0),
+    "aspect_ratio_mean": ("<=", 1.8),
+    "eta_min": (">=", 0.01),
+}
+
+
+def element_targets(summary: dict) -> dict:
+    """Each of :data:`TARGETS` checked on a quality summary (``info["after"]``):
+    ``{key: {"value", "target", "met"}}``, ``target`` as text (e.g. ``">= 10"``).
+
+    The stage does not promise them: its operations keep the topology and the surface
+    budget, and a surface that is thin or sharp at the scale of its tets can leave a tet
+    below the dihedral target (on a perturbed run of the quality suite's star, 7.4°)."""
+    out = {}
+    for key, (op, bound) in TARGETS.items():
+        v = float(summary[key])
+        out[key] = {"value": v, "target": f"{op} {bound:g}", "met": bool(v >= bound if op == ">=" else v <= bound)}
+    return out
+
+
+def missed_targets(info: dict) -> list[str]:
+    """One line per method.md §7b target that the improved mesh misses, for the commands'
+    warnings (``info`` as :func:`improve` returns it; nothing for a report without
+    ``targets``)."""
+    names = {"min_dihedral_worst": "worst minimum dihedral angle (deg)", "min_dihedral_mean": "mean minimum dihedral "
+             "angle (deg)", "aspect_ratio_mean": "mean aspect ratio", "eta_min": "smallest shape quality eta"}
+    lines = []
+    for key, t in (info.get("targets") or {}).items():
+        if not t["met"]:
+            below = f" ({t['tets_below']} tets below)" if "tets_below" in t else ""
+            lines.append(f"{names.get(key, key)} is {t['value']:.3g}{below}, outside method.md §7b's target "
+                         f"{t['target']}: the flips, smoothing and splits found no better elements within the "
+                         f"topology and the surface bound there")
+    return lines
 
 
 def _eta_histogram(V, T, edges) -> dict:
@@ -1087,7 +1130,9 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
           ``bin_edges``, :data:`ETA_HISTOGRAM_EDGES` by default, and ``below_0.01``),
           ``mean_boundary_edge`` (m), ``surface_hausdorff`` (m) and
           ``surface_hausdorff_mean_edges`` (in input mean boundary edges),
-          ``surface_move_bound_mean_edges``, ``topology``, ``rounds``, ``seconds``.
+          ``surface_move_bound_mean_edges``, ``topology``, ``rounds``, ``seconds``, and
+          ``targets``: :func:`element_targets` of ``after`` (method.md §7b's four), with
+          ``tets_below`` in its ``min_dihedral_worst`` entry.
 
     Raises:
         ValueError: an empty mesh or inverted tets.
@@ -1278,12 +1323,17 @@ def _report(w: _Work, mesh: TetMesh, out: TetMesh, before: dict, L: float, signa
     va, fa = mesh.surface_mesh()
     vb, fb = out.surface_mesh()
     hd = surface_hausdorff(va, fa, vb, fb, samples_per_face=cfg.hausdorff_samples_per_face, device=w.device)
+    after = _summary(w.V, w.T, w.quality())
+    targets = element_targets(after)
+    dihedral = TetMesh(w.V, w.T, validate=False).quality()["min_dihedral_deg"]
+    targets["min_dihedral_worst"]["tets_below"] = int((dihedral < TARGETS["min_dihedral_worst"][1]).sum())
     return {
         "flips": dict(w.counts),
         "splits": dict(w.splits),
         "vertices_smoothed": smoothed,
         "before": before,
-        "after": _summary(w.V, w.T, w.quality()),
+        "after": after,
+        "targets": targets,
         "eta_histogram_before": _eta_histogram(mesh.vertices, mesh.tets, cfg.eta_histogram_edges),
         "eta_histogram_after": _eta_histogram(out.vertices, out.tets, cfg.eta_histogram_edges),
         "mean_boundary_edge": L,
