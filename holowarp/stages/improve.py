@@ -220,8 +220,10 @@ def missed_targets(info: dict) -> list[str]:
     """One line per method.md §7b target that the improved mesh misses, for the commands'
     warnings (``info`` as :func:`improve` returns it; nothing for a report without
     ``targets``)."""
-    names = {"min_dihedral_worst": "worst minimum dihedral angle (deg)", "min_dihedral_mean": "mean minimum dihedral "
-             "angle (deg)", "aspect_ratio_mean": "mean aspect ratio", "eta_min": "smallest shape quality eta"}
+    names = {"min_dihedral_worst": "worst minimum dihedral angle (deg)",
+             "min_dihedral_mean": "mean minimum dihedral angle (deg)",
+             "aspect_ratio_mean": "mean aspect ratio",
+             "eta_min": "smallest shape quality eta"}
     lines = []
     for key, t in (info.get("targets") or {}).items():
         if not t["met"]:
