@@ -75,11 +75,11 @@ def test_fast_preset_scales_every_count_by_one_factor_and_keeps_the_order():
     assert paper.topology.refine_rings == 0 and fast.topology.refine_rings == 1
     assert fast.topology.refine_at_prune == len(fs.prune_at) - 1
     assert fast.geometry.lr_start == pytest.approx(paper.geometry.lr_start / FAST_FACTOR)
-    # ... keeps L_HC at its starting weight (GeometryConfig.hc_floor; paper: lam(t) alone) and
+    # ... keeps L_HC at half its starting weight (GeometryConfig.hc_floor; paper: lam(t) alone) and
     # reads the normal maps in its mesh blocks (GeometryConfig.w_prior; paper: no such term).
     assert replace(fast.geometry, hc_floor=0.0, w_prior=0.0, lr_start=paper.geometry.lr_start,
                    lr_end=paper.geometry.lr_end) == paper.geometry
-    assert paper.geometry.hc_floor == 0.0 and fast.geometry.hc_floor == 1.0
+    assert paper.geometry.hc_floor == 0.0 and fast.geometry.hc_floor == 0.5
     assert paper.geometry.w_prior == 0.0 and fast.geometry.w_prior == 2.0
     with pytest.raises(ValueError, match="preset"):
         preset("slow")

@@ -20,7 +20,7 @@ minimises
 - ``L_inv``: sum max(-det F, 0)^p with p rising linearly 2 -> 4 over all mesh iterations;
 - ``lam(t) = (1 - t / T)^2``, t counting mesh iterations over ALL blocks (T of them);
   ``L_HC`` is weighted by ``max(lam(t), hc_floor)`` (:attr:`GeometryConfig.hc_floor`: 0 in
-  the paper, 1 in the fast preset, which refines the tets near the surface before its last
+  the paper, 0.5 in the fast preset, which refines the tets near the surface before its last
   block and needs the smoothing there).
 
 Vertices are optimised with :class:`holowarp.optim.UniformAdam` (per-step displacement cap)
