@@ -291,6 +291,55 @@ def test_stage0_schedules_keep_the_order_of_events():
     fast = preset("fast")
     assert fast.schedule.stage0_iters == 800 and fast.resolution == 128
     assert fast.stage0.schedule(800).densify_until == round(1800 * 800 / 3000)
+    # The coarse start is an option (Stage0Config.coarse_fraction has the measurements).
+    assert fast.stage0.coarse_fraction == 0.0 and preset("paper").stage0.coarse_fraction == 0.0
+    for bad in (dict(coarse_fraction=-0.1), dict(coarse_fraction=1.5), dict(coarse_scale=0.0), dict(coarse_scale=2.0)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            Stage0Config(**bad).validate()
+
+
+def test_a_coarse_start_renders_its_iterations_smaller_and_resumes_into_the_same_phase(tmp_path, monkeypatch):
+    """Stage0Config.coarse_fraction: the first half of the iterations render at half the
+    size, with the intrinsics scaled alike, the rest at the full size; a run interrupted in
+    the coarse half resumes there and ends where the uninterrupted run does."""
+    import holowarp.stages.gaussian_init as gi
+    from holowarp.gaussians import GaussianModel
+
+    ds = tiny_dataset(size=32, normals=True)
+    cfg = tiny_config(20, coarse_fraction=0.5, coarse_scale=0.5, checkpoint_every=5)
+    seen = []
+    real_render = GaussianModel.render
+
+    def spy(self, viewmat, K, width, height, **kw):
+        seen.append((width, height, float(K[0, 0]), float(K[0, 2])))
+        return real_render(self, viewmat, K, width, height, **kw)
+
+    monkeypatch.setattr(GaussianModel, "render", spy)
+    full = train_gs2d(ds, cfg, tmp_path / "full", iters=20, progress=False)
+    steps = seen[:20]
+    assert [s[:2] for s in steps] == [(16, 16)] * 10 + [(32, 32)] * 10
+    assert steps[0][2] == pytest.approx(ds.K[0, 0, 0] / 2) and steps[0][3] == pytest.approx(ds.K[0, 0, 2] / 2)
+    assert steps[-1][2] == pytest.approx(ds.K[0, 0, 0])
+    assert all(s[:2] == (32, 32) for s in seen[20:])  # the test views are scored at the full size
+
+    calls = {"n": 0}
+    real_loss = gi.l1_dssim_loss
+
+    def interrupted(*a, **kw):
+        calls["n"] += 1
+        if calls["n"] > 7:
+            raise KeyboardInterrupt
+        return real_loss(*a, **kw)
+
+    monkeypatch.setattr(gi, "l1_dssim_loss", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        train_gs2d(ds, cfg, tmp_path / "part", iters=20, progress=False)
+    assert torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)["iteration"] == 5
+    monkeypatch.setattr(gi, "l1_dssim_loss", real_loss)
+    resumed = train_gs2d(ds, cfg, tmp_path / "part", iters=20, resume=True, progress=False)
+    assert resumed["gaussians"] == full["gaussians"]
+    for name in ("means", "log_scales", "opacity_logits", "sh_dc"):
+        assert torch.allclose(resumed["model"].params[name], full["model"].params[name], atol=1e-5), name
 
 
 def test_quats_facing_turns_z_onto_each_normal(rng):

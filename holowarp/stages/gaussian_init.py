@@ -19,6 +19,9 @@ with the adaptive density control of 3DGS/2DGS: surfels with a large mean screen
 gradient are cloned (small) or split (large), low-opacity ones pruned, opacities reset
 periodically. Surfels start inside the visual hull of the training masks
 (:func:`holowarp.carve.sample_points_in_hull`); their centres are the point cloud of §4.
+With ``Stage0Config.coarse_fraction`` (off in both presets) the first iterations render and
+compare the views at ``coarse_scale`` of the working resolution (area-filtered images, masks
+and normal maps), the rest at the full one.
 
 Outputs in ``out_dir``: ``gaussians.ply`` (3DGS layout, see :mod:`holowarp.gaussians`),
 ``report.json`` (``psnr_test``, ``ssim_test``, ``gaussians``, ``iters``, ``seconds`` and more),
@@ -157,12 +160,15 @@ class _Trainer:
         self.extent = _scene_extent(dataset, cfg.scene_extent_factor)
         self.lrs = _lrs(cfg, self.extent)
         self.bg = torch.tensor(cfg.background, dtype=torch.float32, device=device)
-        self.targets = torch.from_numpy(np.ascontiguousarray(dataset.composite(cfg.background), dtype=np.float32)).to(device)
-        self.masks = torch.from_numpy(np.ascontiguousarray(dataset.masks, dtype=np.float32)).to(device)
-        self.normals = (torch.from_numpy(np.ascontiguousarray(dataset.normals, dtype=np.float32)).to(device)
-                        if dataset.normals is not None and cfg.prior_weight > 0 else None)
-        self.Ks = torch.from_numpy(dataset.K).double()
         self.Vs = torch.from_numpy(dataset.viewmats).double()
+        # The views as the loss sees them: at the working resolution, and for the first
+        # ``coarse_until`` iterations at ``coarse_scale`` of it (Stage0Config.coarse_fraction).
+        self.coarse_until = int(round(cfg.coarse_fraction * sch.iters))
+        self.sets = {False: self._view_set(dataset)}
+        if self.coarse_until > 0:
+            size = max(1, round(max(dataset.height, dataset.width) * cfg.coarse_scale))
+            self.sets[True] = self._view_set(dataset.resized(size))
+        self._use(False)
         self.ckpt_path = out / "checkpoint.pt"
         self.rng = np.random.default_rng(seed)
         self.gen = torch.Generator().manual_seed(seed)
@@ -171,6 +177,18 @@ class _Trainer:
         self.start, self.elapsed, self.last_loss = 0, 0.0, float("nan")
         self.model: GaussianModel | None = None
         self.grad_acc = self.denom = None
+
+    def _view_set(self, ds: Dataset) -> tuple:
+        """(W, H, RGB targets (N, H, W, 3), masks (N, H, W), normal maps (N, H, W, 3) or None,
+        intrinsics (N, 3, 3) float64) of ``ds`` as torch tensors on the trainer's device."""
+        as_t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).to(self.dev)  # noqa: E731
+        normals = as_t(ds.normals) if ds.normals is not None and self.cfg.prior_weight > 0 else None
+        return (ds.width, ds.height, as_t(ds.composite(self.cfg.background)), as_t(ds.masks), normals,
+                torch.from_numpy(ds.K).double())
+
+    def _use(self, coarse: bool):
+        """Render and compare the views at the coarse resolution or at the working one."""
+        self.rW, self.rH, self.targets, self.masks, self.normals, self.Ks = self.sets[coarse]
 
     def fresh(self):
         pts, cols = init_surfels(self.ds, self.cfg, seed=self.seed, device=self.dev)
@@ -250,7 +268,8 @@ class _Trainer:
         if not self.order:
             self.order = list(self.rng.permutation(train_idx))
         i = int(self.order.pop())
-        model, sch, W, H = self.model, self.sch, self.W, self.H
+        self._use(it < self.coarse_until)
+        model, sch, W, H = self.model, self.sch, self.rW, self.rH
         model.set_lr("means", _means_lr(self.cfg, sch.iters, self.extent, it))
         o = model.render(self.Vs[i], self.Ks[i], W, H, background=self.bg)
         loss = self.loss(it, i, o)
