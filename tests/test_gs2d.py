@@ -192,27 +192,35 @@ def test_training_lowers_the_loss_and_writes_ply_and_report(tmp_path):
 
 
 def test_resumed_training_reproduces_the_uninterrupted_run(tmp_path, monkeypatch):
-    import holowarp.stages.gaussian_init as gi
-
     ds = tiny_dataset()
     cfg = tiny_config(30)
     full = train_gs2d(ds, cfg, tmp_path / "full", iters=30, progress=False)
+    _interrupt_and_resume(ds, cfg, tmp_path / "part", 30, after=20, monkeypatch=monkeypatch, full=full)
+
+
+def _interrupt_and_resume(ds, cfg, out, iters: int, *, after: int, monkeypatch, full, checkpoint_at=None):
+    """Interrupt ``train_gs2d`` at its loss call ``after + 1``, check that it left a
+    checkpoint (at ``checkpoint_at`` when given) and no report, resume it, and compare the
+    result with the uninterrupted run ``full``."""
+    import holowarp.stages.gaussian_init as gi
+
     calls = {"n": 0}
     real_loss = gi.l1_dssim_loss
 
     def interrupted(*a, **kw):
         calls["n"] += 1
-        if calls["n"] > 20:
+        if calls["n"] > after:
             raise KeyboardInterrupt
         return real_loss(*a, **kw)
 
     monkeypatch.setattr(gi, "l1_dssim_loss", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        train_gs2d(ds, cfg, tmp_path / "part", iters=30, progress=False)
-    assert (tmp_path / "part" / "checkpoint.pt").is_file()
-    assert not (tmp_path / "part" / "report.json").exists()
+        train_gs2d(ds, cfg, out, iters=iters, progress=False)
+    assert (out / "checkpoint.pt").is_file() and not (out / "report.json").exists()
+    if checkpoint_at is not None:
+        assert torch.load(out / "checkpoint.pt", weights_only=False)["iteration"] == checkpoint_at
     monkeypatch.setattr(gi, "l1_dssim_loss", real_loss)
-    resumed = train_gs2d(ds, cfg, tmp_path / "part", iters=30, resume=True, progress=False)
+    resumed = train_gs2d(ds, cfg, out, iters=iters, resume=True, progress=False)
     assert resumed["gaussians"] == full["gaussians"]
     for name in ("means", "log_scales", "opacity_logits", "sh_dc"):
         assert torch.allclose(resumed["model"].params[name], full["model"].params[name], atol=1e-5), name
@@ -302,7 +310,6 @@ def test_a_coarse_start_renders_its_iterations_smaller_and_resumes_into_the_same
     """Stage0Config.coarse_fraction: the first half of the iterations render at half the
     size, with the intrinsics scaled alike, the rest at the full size; a run interrupted in
     the coarse half resumes there and ends where the uninterrupted run does."""
-    import holowarp.stages.gaussian_init as gi
     from holowarp.gaussians import GaussianModel
 
     ds = tiny_dataset(size=32, normals=True)
@@ -321,25 +328,8 @@ def test_a_coarse_start_renders_its_iterations_smaller_and_resumes_into_the_same
     assert steps[0][2] == pytest.approx(ds.K[0, 0, 0] / 2) and steps[0][3] == pytest.approx(ds.K[0, 0, 2] / 2)
     assert steps[-1][2] == pytest.approx(ds.K[0, 0, 0])
     assert all(s[:2] == (32, 32) for s in seen[20:])  # the test views are scored at the full size
-
-    calls = {"n": 0}
-    real_loss = gi.l1_dssim_loss
-
-    def interrupted(*a, **kw):
-        calls["n"] += 1
-        if calls["n"] > 7:
-            raise KeyboardInterrupt
-        return real_loss(*a, **kw)
-
-    monkeypatch.setattr(gi, "l1_dssim_loss", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        train_gs2d(ds, cfg, tmp_path / "part", iters=20, progress=False)
-    assert torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)["iteration"] == 5
-    monkeypatch.setattr(gi, "l1_dssim_loss", real_loss)
-    resumed = train_gs2d(ds, cfg, tmp_path / "part", iters=20, resume=True, progress=False)
-    assert resumed["gaussians"] == full["gaussians"]
-    for name in ("means", "log_scales", "opacity_logits", "sh_dc"):
-        assert torch.allclose(resumed["model"].params[name], full["model"].params[name], atol=1e-5), name
+    _interrupt_and_resume(ds, cfg, tmp_path / "part", 20, after=7, checkpoint_at=5, monkeypatch=monkeypatch,
+                          full=full)
 
 
 def test_quats_facing_turns_z_onto_each_normal(rng):
