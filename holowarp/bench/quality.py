@@ -202,7 +202,11 @@ def _input_error(args) -> str | None:
             return (f"--objects {name}: {src}: no such file (the suite reads the shared test meshes from "
                     f"{SHARED}, beside the checkout)")
     try:
-        apply_overrides(preset("fast"), tuple(args.set))
+        cfg = apply_overrides(preset("fast"), tuple(args.set))
+        # Stage 0's settings and the schedule are checked when a run starts, not when they
+        # are set; checked here too, so a bad --set stops the suite before its first hull.
+        cfg.stage0.validate()
+        cfg.schedule.validate()
     except (TypeError, ValueError) as e:
         return str(e).splitlines()[0]
     return None
