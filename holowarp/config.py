@@ -288,7 +288,7 @@ class Stage0Config:
             (``holowarp.bench quality --set schedule.stage0_iters=1600 --set
             stage0.reference_iters=6000 --set stage0.coarse_fraction=0.5``: the densification
             where the 800-iteration run had it): bowl 0.683 / 0.09%, mug
-            0.520 / 0.10% in 1.7x the time; the plain 1600 iterations 0.704 and 0.495 in 2.1x;
+            0.520 / 0.10% in 1.7x the time; the plain 1600 iterations 0.704 and 0.495 in 2.2x;
             1200 iterations, half coarse, 0.633 and 0.476 in 1.2x; two thirds coarse, the same
             share but 0.3-0.5% of the solid marked. Whole fast runs of the quality suite with
             the 1600-iteration setting against the preset (hull in brackets): bowl Chamfer-L1
@@ -298,7 +298,8 @@ class Stage0Config:
             but the dented box's Chamfer-L1 0.0044 -> 0.0051 and concave Chamfer 0.0089 ->
             0.0146, the star's F@0.005 0.944 -> 0.918, and both ended under §7b's 10° (9.3°,
             8.9°); the bowl's and mug's F@0.005 fell (0.581 -> 0.568, 0.601 -> 0.583), stage
-            0 took 25-40 s more. Two suite targets won, two lost: not the preset's default.
+            0 took 15-57 s more (two runs at a time). Two suite targets won, two lost: not
+            the preset's default.
     """
 
     reference_iters: int = STAGE0_REFERENCE_ITERS
