@@ -299,7 +299,7 @@ class _Run:
             self.coarse = None
             return self.ds, self.tensors
         if self.coarse is None:
-            ds = self.ds.resized(max(1, round(max(self.ds.height, self.ds.width) * t.coarse_scale)))
+            ds = self.ds.scaled(t.coarse_scale)
             self.coarse = (ds, ViewTensors(ds, self.device, pieces=self.pieces))
         return self.coarse
 

@@ -85,6 +85,12 @@ class Dataset:
         a = self.masks[..., None]
         return self.images * a + bg * (1.0 - a)
 
+    def scaled(self, scale: float) -> "Dataset":
+        """:meth:`resized` to ``scale`` times the longer image side (rounded, at least one
+        pixel): the coarse copies of the coarse-to-fine schedules (``Stage0Config`` and
+        ``TopologyConfig.coarse_scale``)."""
+        return self.resized(max(1, round(max(self.height, self.width) * scale)))
+
     def resized(self, size: int) -> "Dataset":
         """A copy with the longer image side resized to ``size`` pixels (area filter, see
         :func:`resize_view`); ``K`` is rescaled (:func:`scale_intrinsics`) so the cameras still

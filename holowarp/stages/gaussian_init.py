@@ -166,8 +166,7 @@ class _Trainer:
         self.coarse_until = int(round(cfg.coarse_fraction * sch.iters))
         self.sets = {False: self._view_set(dataset)}
         if self.coarse_until > 0:
-            size = max(1, round(max(dataset.height, dataset.width) * cfg.coarse_scale))
-            self.sets[True] = self._view_set(dataset.resized(size))
+            self.sets[True] = self._view_set(dataset.scaled(cfg.coarse_scale))
         self._use(False)
         self.ckpt_path = out / "checkpoint.pt"
         self.rng = np.random.default_rng(seed)

@@ -1134,7 +1134,8 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
           ``vertices_smoothed``, ``before``/``after`` (tets, vertices, worst and mean
           minimum dihedral in degrees, mean and worst aspect ratio, min and mean quality,
           minimum eta, inverted, tets under the 10° target),
-          ``eta_histogram_before``/``_after`` (counts per bin of ``bin_edges``, :data:`ETA_HISTOGRAM_EDGES` by default, and ``below_0.01``),
+          ``eta_histogram_before``/``_after`` (counts per bin of ``bin_edges``,
+          :data:`ETA_HISTOGRAM_EDGES` by default, and ``below_0.01``),
           ``mean_boundary_edge`` (m), ``surface_hausdorff`` (m) and
           ``surface_hausdorff_mean_edges`` (in input mean boundary edges),
           ``surface_move_bound_mean_edges``, ``topology``, ``rounds``, ``seconds``, and
