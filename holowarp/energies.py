@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from holowarp.ops._warp import FRESH
 from holowarp.ops.tet_energy import (
     HCTopology,
     biharmonic_energy,
@@ -256,11 +257,12 @@ class TetEnergies:
         tets, dm_inv, _, _ = self._rest_for(x)
         return inversion_penalty(x, tets, dm_inv, p)
 
-    def biharmonic_and_inversion(self, x: torch.Tensor, p: float = 2.0) -> tuple[torch.Tensor, torch.Tensor]:
+    def biharmonic_and_inversion(self, x: torch.Tensor, p: float = 2.0, *, cache=FRESH) -> tuple[torch.Tensor, torch.Tensor]:
         """``(self.biharmonic(x), self.inversion_penalty(x, p))`` from one fused pass: the
-        deformation gradients and their determinants are computed once."""
+        deformation gradients and their determinants are computed once. ``cache``: see
+        :func:`holowarp.ops.tet_energy.tet_energies`."""
         tets, dm_inv, adj, w = self._rest_for(x)
-        return tet_energies(x, tets, dm_inv, adj, w, p)
+        return tet_energies(x, tets, dm_inv, adj, w, p, cache=cache)
 
     def hc_topology(self, boundary_faces=None) -> HCTopology:
         """Surface connectivity for :meth:`hc_laplacian` (cached by the faces' contents)."""
@@ -282,6 +284,7 @@ class TetEnergies:
         *,
         alpha: float = HC_ALPHA,
         beta: float = HC_BETA,
+        cache=FRESH,
     ) -> torch.Tensor:
         """Two-stage HC-Laplacian energy on the boundary vertices S (method.md §6).
 
@@ -300,6 +303,7 @@ class TetEnergies:
             boundary_faces: (B, 3) outward-wound boundary faces (global ids); default: the
                 boundary of this instance's tets.
             lam_cond: weight of the inward normal part (0 in stage 1, 1 in stage 2).
+            cache: see :func:`holowarp.ops.tet_energy.hc_laplacian_energy`.
         """
         if not isinstance(x, torch.Tensor) or x.shape != (self.num_vertices, 3):
             raise ValueError(f"TetEnergies: x must be a ({self.num_vertices}, 3) float tensor, got {getattr(x, 'shape', type(x))}")
@@ -311,8 +315,16 @@ class TetEnergies:
         if alpha != 0.0:
             if self.rest_vertices is None:
                 self.capture_rest(x.detach())
-            x_orig = self.rest_vertices.to(device=x.device, dtype=x.dtype)
-        return hc_laplacian_energy(x, topo, lam_cond, x_orig=x_orig, alpha=alpha, beta=beta)
+            x_orig = self._rest_as(x)
+        return hc_laplacian_energy(x, topo, lam_cond, x_orig=x_orig, alpha=alpha, beta=beta, cache=cache)
+
+    def _rest_as(self, x: torch.Tensor) -> torch.Tensor:
+        """The captured rest positions in ``x``'s dtype and device, cast once per pair."""
+        key = ("rest", x.dtype, x.device)
+        r = self._cast.get(key)
+        if r is None or r[0] is not self.rest_vertices:
+            r = self._cast[key] = (self.rest_vertices, self.rest_vertices.to(device=x.device, dtype=x.dtype).contiguous())
+        return r[1]
 
 
 def _np(a) -> np.ndarray:

@@ -75,3 +75,29 @@ def test_bad_inputs_name_the_argument():
         mesh_view_losses(alpha, normal, mask, ref_normal.float(), ref_alpha, prior)
     with pytest.raises(ValueError, match="prior"):
         mesh_view_losses(alpha, normal, mask, ref_normal, ref_alpha, prior[:-1])
+
+
+def test_a_step_cache_gives_the_fresh_values_and_gradients_bit_for_bit():
+    # The geometry step passes one StepCache for every view: new images each call (other
+    # storage), the prior on and off, and other sizes must all give the cache-less bits, and
+    # a returned loss must not change when the next call reuses the buffers.
+    from holowarp.ops._warp import StepCache
+
+    cache = StepCache()
+    kept = None
+    for seed, with_prior, (H, W) in ((3, True, (13, 17)), (4, True, (13, 17)), (5, False, (13, 17)), (6, True, (9, 11))):
+        alpha, normal, mask, ref_normal, ref_alpha, prior = _inputs(seed, H=H, W=W, with_prior=with_prior)
+        outs, grads = [], []
+        for c in (cache, None):
+            a = alpha.clone().requires_grad_(True)
+            n = normal.clone().requires_grad_(True)
+            kw = {"cache": c} if c is not None else {}
+            out = mesh_view_losses(a, n, mask, ref_normal, ref_alpha, prior, **kw)
+            (out * torch.tensor([0.7, 1.3, 0.9])).sum().backward()
+            outs.append(out)
+            grads.append((a.grad, n.grad))
+        assert torch.equal(outs[0], outs[1]) and outs[0][1] > 0
+        assert torch.equal(grads[0][0], grads[1][0]) and torch.equal(grads[0][1], grads[1][1])
+        if kept is None:
+            kept = (outs[0], outs[0].clone())
+    assert torch.equal(*kept)

@@ -275,6 +275,36 @@ def test_revert_matches_a_numpy_reference_round_for_round(rng, dtype, local):
     np.testing.assert_allclose(xn.numpy(), ref_x, rtol=0, atol=1e-6 if dtype == torch.float32 else 0)
 
 
+def test_revert_through_a_step_cache_matches_the_reference_step_after_step(rng):
+    # The geometry step calls the guard through one StepCache on the same tensors every
+    # step (x written by the optimiser, x_old a kept buffer): each step's put-back must still
+    # be the dense reference's, its recorded launches replayed with the new round numbers.
+    from holowarp.ops._warp import StepCache
+    from holowarp.ops.tet_energy import vertex_tets
+
+    mesh = box_tetmesh((5, 4, 3))
+    V, T = np.array(mesh.vertices), np.array(mesh.tets)
+    tets = torch.tensor(T, dtype=torch.int32)
+    inc = vertex_tets(tets, len(V))
+    cache = StepCache()
+    xn = torch.empty(V.shape, dtype=torch.float32)
+    xo = torch.empty(V.shape, dtype=torch.float32)
+    rounds_seen = set()
+    for _ in range(6):
+        x_old = (V + rng.normal(scale=0.01, size=V.shape)).astype(np.float32)
+        x_new = x_old + rng.normal(scale=0.05, size=V.shape).astype(np.float32)
+        floor = (0.6 * np.abs(np.linalg.det(np.stack([x_old[T[:, k]] - x_old[T[:, 0]] for k in (1, 2, 3)], -1))
+                              / 6.0)).astype(np.float32)
+        ref_x, ref_n, rounds = _revert_reference(x_new, x_old, T, floor)
+        rounds_seen.add(rounds)
+        xn.copy_(torch.from_numpy(x_new))
+        xo.copy_(torch.from_numpy(x_old))
+        n = revert_inverting_moves(xn, xo, tets, floor=torch.from_numpy(floor), incidence=inc, cache=cache)
+        assert int(n) == ref_n
+        np.testing.assert_allclose(xn.numpy(), ref_x, rtol=0, atol=1e-6)
+    assert max(rounds_seen) >= 2  # later rounds ran, with their round number changed
+
+
 def test_hull_field_reads_inside_and_outside_of_the_silhouettes(sphere_scene):
     ds, _ = sphere_scene
     pts = np.array([[0.0, 0.0, 0.0], [0.2, -0.1, 0.1], [0.6, 0.0, 0.0], [0.0, 0.0, 5.0]])

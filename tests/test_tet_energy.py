@@ -483,3 +483,53 @@ def test_tet_mean_refuses_bad_shapes_by_name():
         ops.tet_mean(torch.zeros(5, 2), torch.zeros((2, 4), dtype=torch.int32))
     with pytest.raises(TypeError, match="float32 and float64"):
         ops.tet_mean(torch.zeros(5, 3, dtype=torch.float16), torch.zeros((2, 4), dtype=torch.int32))
+
+
+# --- a StepCache (the geometry step's reused buffers, views and launches) ------------------
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_cached_energies_repeat_the_fresh_values_and_gradients_bit_for_bit(setup, rng, dtype):
+    # The geometry step runs both fused energies through one StepCache on the same leaf
+    # tensor, moved in place each step, with a changing barrier exponent and lam_cond. Each
+    # step must give the bits of a cache-less call, which the dense references check; a new
+    # tensor, then a mesh of another size, must re-pack the launches, not replay stale ones.
+    from holowarp.ops._warp import StepCache
+
+    mesh, rest, x0, energies = setup
+    bf = mesh.boundary_faces()
+    cache = StepCache()
+    x = x0.to(dtype).clone().requires_grad_(True)
+    first = None
+    for step, p in enumerate((2.0, 3.5, 2.0, 4.0)):
+        with torch.no_grad():
+            x.copy_(torch.as_tensor(x0.numpy() + rng.normal(scale=0.05, size=x0.shape), dtype=dtype))
+            x[5] += torch.tensor([0.0, 0.6, -0.7], dtype=dtype)  # some inverted tets: both terms active
+        if step == 3:  # a new leaf: other storage for every view of x
+            x = x.detach().clone().requires_grad_(True)
+        lam_cond = float(step % 2)
+        w = rng.uniform(0.5, 2.0, size=3)
+        b, i = energies.biharmonic_and_inversion(x, p, cache=cache)
+        h = energies.hc_laplacian(x, bf, lam_cond, cache=cache)
+        x.grad = None
+        (w[0] * b + w[1] * i + w[2] * h).backward()
+        xf = x.detach().clone().requires_grad_(True)
+        bf_, if_ = energies.biharmonic_and_inversion(xf, p)
+        hf = energies.hc_laplacian(xf, bf, lam_cond)
+        (w[0] * bf_ + w[1] * if_ + w[2] * hf).backward()
+        assert torch.equal(b, bf_) and torch.equal(i, if_) and torch.equal(h, hf) and i > 0
+        assert torch.equal(x.grad, xf.grad) and x.grad.abs().sum() > 0
+        assert b.item() == pytest.approx(ref.biharmonic_ref(x.detach(), mesh.tets, rest, energies.weights).item(),
+                                         rel=1e-5 if dtype == torch.float32 else 1e-12)
+        if first is None:
+            first = (b.clone(), x.grad.clone(), b, x.grad)
+    # what a step returned stays as it was after later steps reuse the buffers
+    assert torch.equal(first[0], first[2]) and torch.equal(first[1], first[3])
+    big = box_tetmesh((4, 3, 3), (1.0, 0.8, 0.8))
+    e_big = TetEnergies(big, np.asarray(big.vertices) + rng.normal(scale=0.02, size=big.vertices.shape))
+    xb = torch.as_tensor(np.asarray(big.vertices) + rng.normal(scale=0.04, size=big.vertices.shape), dtype=dtype)
+    got = e_big.biharmonic_and_inversion(xb, 2.0, cache=cache)
+    want = e_big.biharmonic_and_inversion(xb, 2.0)
+    assert all(torch.equal(a, b_) for a, b_ in zip(got, want))
+    assert torch.equal(e_big.hc_laplacian(xb, big.boundary_faces(), 1.0, cache=cache),
+                       e_big.hc_laplacian(xb, big.boundary_faces(), 1.0))

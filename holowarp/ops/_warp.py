@@ -13,7 +13,7 @@ import warp as wp
 
 from holowarp.device import CPU_PIECES, init_warp, run_chunks, thread_chunks
 
-__all__ = ["wp_device", "to_wp", "torch_stream", "thread_chunks", "run_chunks", "CPU_PIECES"]
+__all__ = ["wp_device", "to_wp", "torch_stream", "thread_chunks", "run_chunks", "CPU_PIECES", "StepCache", "FRESH"]
 
 init_warp()
 
@@ -45,3 +45,105 @@ def torch_stream(t: torch.Tensor):
         return wp.ScopedStream(wp.stream_from_torch(t.device))
     return contextlib.nullcontext()
 
+
+
+class StepCache:
+    """Buffers, Warp views and recorded launches of a step repeated on same-shaped data.
+
+    A geometry step (:class:`holowarp.stages.geometry.GeometryBlock`) launches about twenty
+    small kernels, most on arrays that are the same from step to step. A fresh ``wp.launch``
+    spends about 15 us packing its arguments and each ``wp.from_torch`` view about 6 us on
+    this CPU (``/work/scratch/s22/launchcost.py``), longer than many of those kernels run.
+    Keyed by call site (a string the caller picks, one per use), a cache hands back:
+
+    - :meth:`buffer`: the same torch tensor while the shape, dtype and device hold;
+    - :meth:`view`: the same Warp view while the tensor's storage, shape and strides hold;
+    - :meth:`launch`: a launch recorded once (``wp.launch(record_cmd=True)``); a repeat
+      re-packs only the arguments that changed (a different view object, a different scalar
+      value), so one whose arrays are all unchanged costs about 3 us.
+
+    The buffers are reused: a value one step saves for its backward pass must be consumed
+    before the same site runs again (one forward, then its backward, as a training step
+    does). :data:`FRESH` has the same methods and makes everything anew on each call, for
+    callers without a cache. Launches run on the device's current stream, as ``wp.launch``
+    does, so :func:`torch_stream` orders them on CUDA.
+    """
+
+    def __init__(self):
+        self._buffers: dict = {}
+        self._views: dict = {}
+        self._launches: dict = {}
+
+    def buffer(self, site: str, shape, dtype: torch.dtype, device, *, zero: bool = False) -> torch.Tensor:
+        """A tensor of ``shape``/``dtype`` on ``device`` owned by ``site`` (zeroed when
+        ``zero``, else holding whatever the site left in it)."""
+        shape = tuple(int(s) for s in shape)
+        t = self._buffers.get(site)
+        if t is None or tuple(t.shape) != shape or t.dtype != dtype or t.device != torch.device(device):
+            t = self._buffers[site] = (torch.zeros if zero else torch.empty)(shape, dtype=dtype, device=device)
+        elif zero:
+            t.zero_()
+        return t
+
+    def view(self, site: str, t: torch.Tensor, dtype=None) -> wp.array:
+        """:func:`to_wp` of ``t``, the same object while ``t``'s storage, shape, strides and
+        dtype are those of the last call at ``site``. One view per site is kept, holding its
+        tensor: a site that sees a new tensor each step keeps only the latest alive."""
+        if not t.is_contiguous():
+            t = t.contiguous()
+        key = (t.data_ptr(), tuple(t.shape), t.dtype, t.device, dtype)
+        hit = self._views.get(site)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        a = to_wp(t, dtype)
+        self._views[site] = (key, a)
+        return a
+
+    def launch(self, site: str, kernel, dim: int, inputs=(), outputs=(), device=None) -> None:
+        """``wp.launch(kernel, dim, inputs, outputs, device)``, recorded at the first call of
+        ``site`` (and again when the kernel or device changes) and replayed after: array
+        arguments are compared by identity (pass views from :meth:`view`), scalars by value,
+        and only those that differ are packed again."""
+        args = (*inputs, *outputs)
+        rec = self._launches.get(site)
+        if rec is None or rec[0] is not kernel or rec[1] != device or len(rec[4]) != len(args):
+            cmd = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, record_cmd=True)
+            self._launches[site] = rec = [kernel, device, cmd, int(dim), list(args)]
+        else:
+            cmd, old = rec[2], rec[4]
+            for i, a in enumerate(args):
+                o = old[i]
+                if a is o:
+                    continue
+                if isinstance(a, wp.array) or isinstance(o, wp.array) or _scalar(a) != _scalar(o):
+                    cmd.set_param_at_index(i, a)
+                old[i] = a
+            if rec[3] != int(dim):
+                cmd.set_dim(int(dim))
+                rec[3] = int(dim)
+        rec[2].launch()
+
+
+def _scalar(v):
+    """A scalar launch argument's value (Warp scalar types wrap theirs in ``.value``)."""
+    return getattr(v, "value", v)
+
+
+class _Fresh:
+    """:class:`StepCache`'s interface without the caching: new buffers, views and launches."""
+
+    @staticmethod
+    def buffer(site, shape, dtype, device, *, zero=False):
+        return (torch.zeros if zero else torch.empty)(tuple(int(s) for s in shape), dtype=dtype, device=device)
+
+    @staticmethod
+    def view(site, t, dtype=None):
+        return to_wp(t, dtype)
+
+    @staticmethod
+    def launch(site, kernel, dim, inputs=(), outputs=(), device=None):
+        wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device)
+
+
+#: The cache of callers that have none: everything made anew on each call.
+FRESH = _Fresh()

@@ -20,7 +20,7 @@ import torch
 import warp as wp
 
 from holowarp.kernels import tet_energy as K_
-from holowarp.ops._warp import to_wp, wp_device, torch_stream
+from holowarp.ops._warp import FRESH, to_wp, torch_stream, wp_device
 
 __all__ = [
     "HCTopology",
@@ -61,14 +61,15 @@ def _types(t: torch.Tensor):
 _OVERLOADS: dict = {}
 
 
-def _launch(kernel, dim, inputs=(), outputs=(), device=None):
-    """``wp.launch`` of a generic tet kernel, its overload resolved once per signature."""
+def _launch(kernel, dim, inputs=(), outputs=(), device=None, *, cache=FRESH, site: str = ""):
+    """``wp.launch`` of a generic tet kernel, its overload resolved once per signature;
+    through ``cache`` (:class:`holowarp.ops._warp.StepCache`) at call site ``site``."""
     args = (*inputs, *outputs)
     key = (kernel, *(a.dtype if isinstance(a, wp.array) else type(a) for a in args))
     k = _OVERLOADS.get(key)
     if k is None:
         k = _OVERLOADS[key] = kernel.get_overload(kernel.infer_argument_types(list(args)))
-    wp.launch(k, dim=dim, inputs=inputs, outputs=outputs, device=device)
+    cache.launch(site, k, dim, inputs, outputs, device)
 
 
 def _vec(t, V):
@@ -257,52 +258,70 @@ def inversion_penalty(x, tets, dm_inv, p: float = 2.0) -> torch.Tensor:
 
 class _TetEnergies(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, tets, dm_inv, adjacency, weights, p):
+    def forward(ctx, x, tets, dm_inv, adjacency, weights, p, cache):
         T, V, M = _types(x)
         dev = wp_device(x)
-        m = tets.shape[0]
-        F = torch.empty((m, 3, 3), dtype=x.dtype, device=x.device)
-        LF = torch.empty_like(F)
-        e_bih = torch.empty(m, dtype=x.dtype, device=x.device)
-        e_inv = torch.empty(m, dtype=x.dtype, device=x.device)
+        m, c = tets.shape[0], cache
+        F = c.buffer("te.F", (m, 3, 3), x.dtype, x.device)
+        LF = c.buffer("te.LF", (m, 3, 3), x.dtype, x.device)
+        e_bih = c.buffer("te.e_bih", (m,), x.dtype, x.device)
+        e_inv = c.buffer("te.e_inv", (m,), x.dtype, x.device)
         need = bool(ctx.needs_input_grad[0])  # grad mode is off inside forward
-        g_inv = torch.zeros_like(x) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
-        tets_wp, dm_wp, F_wp = _i(tets, wp.vec4i), _mat(dm_inv, M), _mat(F, M)
+        g_inv = c.buffer("te.g_inv", x.shape if need else (1, 3), x.dtype, x.device, zero=True)
+        tets_wp, F_wp = c.view("te.tets", tets, wp.vec4i), c.view("te.F", F, M)
         with torch_stream(x):
-            _launch(K_.tet_pass_kernel, dim=m, inputs=[_vec(x, V), tets_wp, dm_wp, T(p), int(need)],
-                   outputs=[F_wp, to_wp(e_inv), _vec(g_inv, V)], device=dev)
-            _launch(K_.biharmonic_forward_kernel, dim=m, inputs=[F_wp, _i(adjacency, wp.vec4i), to_wp(weights)],
-                   outputs=[_mat(LF, M), to_wp(e_bih)], device=dev)
+            _launch(K_.tet_pass_kernel, dim=m,
+                    inputs=[c.view("te.x", x.detach(), V), tets_wp, c.view("te.dm_inv", dm_inv, M), T(p), int(need)],
+                    outputs=[F_wp, c.view("te.e_inv", e_inv), c.view("te.g_inv", g_inv, V)], device=dev,
+                    cache=c, site="te.tet_pass")
+            _launch(K_.biharmonic_forward_kernel, dim=m,
+                    inputs=[F_wp, c.view("te.adjacency", adjacency, wp.vec4i), c.view("te.weights", weights)],
+                    outputs=[c.view("te.LF", LF, M), c.view("te.e_bih", e_bih)], device=dev,
+                    cache=c, site="te.biharmonic_forward")
         ctx.save_for_backward(tets, adjacency, weights, LF, dm_inv, g_inv)
         ctx.num_vertices = x.shape[0]
+        ctx.cache = c
         return e_bih.sum(), e_inv.sum()
 
     @staticmethod
     def backward(ctx, g_bih, g_inv_out):
         tets, adjacency, weights, LF, dm_inv, g_inv = ctx.saved_tensors
         T, V, M = _types(LF)
-        grad_x = torch.zeros((ctx.num_vertices, 3), dtype=LF.dtype, device=LF.device)
+        c = ctx.cache
+        grad_x = c.buffer("te.grad_x", (ctx.num_vertices, 3), LF.dtype, LF.device, zero=True)
         if g_bih is not None:
-            g = g_bih.reshape(1).to(LF.dtype).contiguous()
+            g = c.buffer("te.g_bih", (1,), LF.dtype, LF.device).copy_(g_bih.reshape(1))
             with torch_stream(LF):
                 _launch(K_.biharmonic_backward_kernel, dim=tets.shape[0],
-                       inputs=[_i(tets, wp.vec4i), _i(adjacency, wp.vec4i), to_wp(weights), _mat(LF, M),
-                               _mat(dm_inv, M), to_wp(g)], outputs=[_vec(grad_x, V)], device=wp_device(LF))
+                        inputs=[c.view("te.tets", tets, wp.vec4i), c.view("te.adjacency", adjacency, wp.vec4i),
+                                c.view("te.weights", weights), c.view("te.LF", LF, M), c.view("te.dm_inv", dm_inv, M),
+                                c.view("te.g_bih", g)],
+                        outputs=[c.view("te.grad_x", grad_x, V)], device=wp_device(LF), cache=c,
+                        site="te.biharmonic_backward")
         if g_inv_out is not None and g_inv.shape == grad_x.shape:
             grad_x += g_inv * g_inv_out
-        return grad_x, None, None, None, None, None
+        # the buffer is this site's again at the next step; autograd may keep what it returns
+        return grad_x.clone(), None, None, None, None, None, None
 
 
-def tet_energies(x, tets, dm_inv, adjacency, weights, p: float = 2.0):
+def tet_energies(x, tets, dm_inv, adjacency, weights, p: float = 2.0, *, cache=FRESH):
     """``(biharmonic_energy(...), inversion_penalty(..., p))`` from one pass over the tets:
     F and det F are computed once (kernel ``tet_pass_kernel``), the bi-harmonic Laplacian
-    reads that F. Same values and gradients as the two functions called separately."""
+    reads that F. Same values and gradients as the two functions called separately.
+
+    ``cache``: a :class:`holowarp.ops._warp.StepCache` for a caller that repeats this on the
+    same arrays (the geometry step); its buffers hold what the backward pass reads, so run
+    the backward before the next forward through the same cache."""
     _check_x(x)
     p = float(p)
     if not p >= 1.0:
         raise ValueError(f"tet_energies: p must be >= 1, got {p}")
-    return _TetEnergies.apply(x.contiguous(), tets.contiguous(), dm_inv.to(x.dtype).contiguous(),
-                              adjacency.contiguous(), weights.to(x.dtype).contiguous(), p)
+    return _TetEnergies.apply(x.contiguous(), _int32(tets), dm_inv.to(x.dtype).contiguous(),
+                              _int32(adjacency), weights.to(x.dtype).contiguous(), p, cache)
+
+
+def _int32(t: torch.Tensor) -> torch.Tensor:
+    return t.to(torch.int32).contiguous()
 
 
 # --- per-tet means (the surfels' centres and field opacities) -----------------------------
@@ -380,7 +399,7 @@ def vertex_tets(tets: torch.Tensor, num_vertices: int) -> tuple[torch.Tensor, to
 
 
 def revert_floor_crossings(x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, floor: torch.Tensor,
-                           *, max_rounds: int = 20, incidence=None) -> torch.Tensor:
+                           *, max_rounds: int = 20, incidence=None, cache=FRESH) -> torch.Tensor:
     """Put back, in place, the four vertices of every tet whose signed volume was above its
     ``floor`` (M,) at ``x_old`` (N, 3) and is not at ``x_new`` (N, 3; NaN counts as not);
     repeated until no tet crosses (putting one tet back can push a neighbour under), with a
@@ -392,38 +411,42 @@ def revert_floor_crossings(x_new: torch.Tensor, x_old: torch.Tensor, tets: torch
     (``incident_floor_crossing_kernel``, the same tets found: no other tet's volume
     changed), else every tet again. Each round reads its crossing counter once; a round
     that finds crossings adds one pass putting their vertices back. Returns the number of
-    vertices put back as a 0-dim int tensor (all N after a full revert)."""
+    vertices put back as a 0-dim int tensor (all N after a full revert).
+
+    ``cache``: a :class:`holowarp.ops._warp.StepCache` for a caller that repeats this on the
+    same arrays (the geometry step: the same ``x_new``, ``x_old``, ``tets`` and ``floor``)."""
     _check_x(x_new, "x_new")
     _check_x(x_old, "x_old")
     T, V, M = _types(x_new)
     if not (x_new.is_contiguous() and x_old.dtype == x_new.dtype and floor.shape == (tets.shape[0],)):
         raise ValueError("revert_floor_crossings: x_new must be contiguous (it is written in place), x_old of its "
                          f"dtype, floor (M,) = ({tets.shape[0]},); got floor {tuple(floor.shape)}")
-    dev = wp_device(x_new)
+    dev, c = wp_device(x_new), cache
     m = tets.shape[0]
-    stamp = torch.zeros(x_new.shape[0], dtype=torch.int32, device=x_new.device)
+    stamp = c.buffer("rv.stamp", (x_new.shape[0],), torch.int32, x_new.device, zero=True)
     if m == 0:
         return stamp.sum()
-    w_new, w_old = _vec(x_new, V), _vec(x_old.detach().contiguous(), V)
-    w_tets, w_floor = _i(tets.contiguous(), wp.vec4i), to_wp(floor.to(x_new.dtype).contiguous())
-    bad = torch.empty(m, dtype=torch.int32, device=x_new.device)
-    count = torch.zeros(1, dtype=torch.int32, device=x_new.device)
-    w_bad, w_count, w_stamp = to_wp(bad), to_wp(count), to_wp(stamp)
-    local = None if incidence is None else (to_wp(incidence[0]), to_wp(incidence[1]))
+    w_new, w_old = c.view("rv.x_new", x_new, V), c.view("rv.x_old", x_old.detach(), V)
+    w_tets = c.view("rv.tets", _int32(tets), wp.vec4i)
+    w_floor = c.view("rv.floor", floor.to(x_new.dtype))
+    bad = c.buffer("rv.bad", (m,), torch.int32, x_new.device)
+    count = c.buffer("rv.count", (1,), torch.int32, x_new.device, zero=True)
+    w_bad, w_count, w_stamp = c.view("rv.bad", bad), c.view("rv.count", count), c.view("rv.stamp", stamp)
+    local = None if incidence is None else (c.view("rv.offsets", incidence[0]), c.view("rv.incident", incidence[1]))
     with torch_stream(x_new):
         for r in range(1, max_rounds + 1):
             if r == 1 or local is None:
                 _launch(K_.volume_floor_crossing_kernel, dim=m, inputs=[w_new, w_old, w_tets, w_floor],
-                        outputs=[w_bad, w_count], device=dev)
+                        outputs=[w_bad, w_count], device=dev, cache=c, site="rv.all")
             else:
                 _launch(K_.incident_floor_crossing_kernel, dim=x_new.shape[0],
                         inputs=[w_new, w_old, w_tets, w_floor, *local, w_stamp, r - 1], outputs=[w_bad, w_count],
-                        device=dev)
+                        device=dev, cache=c, site="rv.incident")
             if int(count[0]) == 0:
                 return (stamp > 0).sum()
             count.zero_()
             _launch(K_.revert_tet_vertices_kernel, dim=m, inputs=[w_bad, w_tets, w_old, r], outputs=[w_new, w_stamp],
-                    device=dev)
+                    device=dev, cache=c, site="rv.revert")
     x_new.copy_(x_old)
     return torch.tensor(x_new.shape[0], device=x_new.device)
 
@@ -527,48 +550,53 @@ def hc_targets(x, topo: HCTopology, *, x_orig=None, alpha: float = 0.0, beta: fl
     return target, normal
 
 
-def _hc_umbrella(x, xo, topo: HCTopology, alpha: float, p, b, nacc):
+def _hc_umbrella(x, xo, topo: HCTopology, alpha: float, p, b, nacc, *, cache=FRESH):
     """The first two passes of the HC targets: umbrella averages ``p`` and corrections ``b``
     (S, 3), and the area-weighted normal sums ``nacc`` (S, 3, zero on entry); returns their
     Warp views and that of ``x``."""
     T, V, M = _types(x)
-    dev = wp_device(x)
+    dev, c = wp_device(x), cache
     sid, off, nid, fg, fl = topo.views()
-    x_wp = _vec(x, V)
-    p_wp, b_wp, n_wp = _vec(p, V), _vec(b, V), _vec(nacc, V)
+    x_wp = c.view("hc.x", x, V)
+    p_wp, b_wp, n_wp = c.view("hc.p", p, V), c.view("hc.b", b, V), c.view("hc.nacc", nacc, V)
     with torch_stream(x):
-        _launch(K_.hc_umbrella_kernel, dim=topo.num_surface_vertices, inputs=[x_wp, _vec(xo, V), sid, off, nid, T(alpha)],
-                outputs=[p_wp, b_wp], device=dev)
+        _launch(K_.hc_umbrella_kernel, dim=topo.num_surface_vertices,
+                inputs=[x_wp, c.view("hc.xo", xo, V), sid, off, nid, T(alpha)], outputs=[p_wp, b_wp], device=dev,
+                cache=c, site="hc.umbrella")
         _launch(K_.hc_face_normal_kernel, dim=topo.faces_global.shape[0], inputs=[x_wp, fg, fl], outputs=[n_wp],
-                device=dev)
+                device=dev, cache=c, site="hc.face_normal")
     return p_wp, b_wp, n_wp, x_wp
 
 
 def hc_laplacian_energy(x, topo: HCTopology, lam_cond: float, *, x_orig=None, alpha: float = 0.0,
-                        beta: float = 0.5) -> torch.Tensor:
+                        beta: float = 0.5, cache=FRESH) -> torch.Tensor:
     """:func:`hc_energy` of the targets and normals :func:`hc_targets` gives, the last pass of
     each fused (kernel ``hc_target_energy_kernel``): three launches instead of four, and no
-    target or normal arrays. The same value and gradient, bit for bit (tests/test_tet_energy.py)."""
+    target or normal arrays. The same value and gradient, bit for bit (tests/test_tet_energy.py).
+
+    ``cache``: a :class:`holowarp.ops._warp.StepCache` for a caller that repeats this on the
+    same arrays; the gradient the result carries lives in its buffer until the next call."""
     _check_x(x)
     T, V, M = _types(x)
-    dev = wp_device(x)
+    dev, c = wp_device(x), cache
     S = topo.num_surface_vertices
     xc = x.contiguous()
     xd = xc.detach()
     xo = xd if x_orig is None else x_orig.detach().to(x.dtype).contiguous()
-    p = torch.empty((S, 3), dtype=x.dtype, device=x.device)
-    b = torch.empty_like(p)
-    nacc = torch.zeros_like(p)
-    energy = torch.empty(S, dtype=x.dtype, device=x.device)
+    p = c.buffer("hc.p", (S, 3), x.dtype, x.device)
+    b = c.buffer("hc.b", (S, 3), x.dtype, x.device)
+    nacc = c.buffer("hc.nacc", (S, 3), x.dtype, x.device, zero=True)
+    energy = c.buffer("hc.energy", (S,), x.dtype, x.device)
     need = x.requires_grad and torch.is_grad_enabled()
-    grad_x = torch.zeros_like(xd) if need else torch.zeros((1, 3), dtype=x.dtype, device=x.device)
+    grad_x = c.buffer("hc.grad_x", xd.shape if need else (1, 3), x.dtype, x.device, zero=True)
     with torch.no_grad():
-        p_wp, b_wp, n_wp, x_wp = _hc_umbrella(xd, xo, topo, alpha, p, b, nacc)
+        p_wp, b_wp, n_wp, x_wp = _hc_umbrella(xd, xo, topo, alpha, p, b, nacc, cache=c)
         sid, off, nid, _, _ = topo.views()
         with torch_stream(x):
             _launch(K_.hc_target_energy_kernel, dim=S,
                     inputs=[p_wp, b_wp, off, nid, n_wp, T(beta), x_wp, sid, T(float(lam_cond)), int(need)],
-                    outputs=[to_wp(energy), _vec(grad_x, V)], device=dev)
+                    outputs=[c.view("hc.energy", energy), c.view("hc.grad_x", grad_x, V)], device=dev,
+                    cache=c, site="hc.target_energy")
     value = energy.sum()
     if not need:
         return value

@@ -63,6 +63,7 @@ def signed_volumes_t(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
 
 def revert_inverting_moves(
     x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, *, floor=None, max_rounds: int = 20, incidence=None,
+    cache=None,
 ) -> torch.Tensor:
     """Undo, in place, the moves of vertices whose tets this step inverted or collapsed.
 
@@ -73,13 +74,15 @@ def revert_inverting_moves(
     from forming: their huge deformation gradients would otherwise dominate the energies.
 
     ``incidence``: :func:`holowarp.ops.tet_energy.vertex_tets` of ``tets``; with it the
-    rounds after the first check only the tets of the vertices just put back.
+    rounds after the first check only the tets of the vertices just put back. ``cache``: a
+    :class:`holowarp.ops._warp.StepCache` of a caller repeating this on the same arrays.
 
     Returns:
         the number of vertices reverted, as a 0-dim tensor (read it when convenient: on
         CUDA each read is a sync). Each round is one fused Warp pass and one host read of
         its counter (:func:`holowarp.ops.tet_energy.revert_floor_crossings`).
     """
+    from holowarp.ops._warp import FRESH
     from holowarp.ops.tet_energy import revert_floor_crossings
 
     with torch.no_grad():
@@ -87,7 +90,8 @@ def revert_inverting_moves(
             floor = torch.zeros(tets.shape[0], dtype=x_new.dtype, device=x_new.device)
         elif not torch.is_tensor(floor) or floor.ndim == 0:
             floor = torch.full((tets.shape[0],), float(floor), dtype=x_new.dtype, device=x_new.device)
-        return revert_floor_crossings(x_new, x_old, tets, floor, max_rounds=max_rounds, incidence=incidence)
+        return revert_floor_crossings(x_new, x_old, tets, floor, max_rounds=max_rounds, incidence=incidence,
+                                      cache=FRESH if cache is None else cache)
 
 
 @dataclass
@@ -125,6 +129,7 @@ class GeometryBlock:
     def __init__(self, model: TetGaussians, dataset, views, config: GeometryConfig, *, block_iters: int,
                  total_mesh_iters: int, rest_vertices=None, optimizer_state: dict | None = None):
         from holowarp.energies import TetEnergies
+        from holowarp.ops._warp import StepCache
         from holowarp.ops.tet_energy import vertex_tets
         from holowarp.optim import UniformAdam
 
@@ -153,6 +158,10 @@ class GeometryBlock:
         with torch.no_grad():
             self.floor = config.min_volume_fraction * signed_volumes_t(self.rest, model.tets).clamp_min(0)
         self.incidence = vertex_tets(model.tets, model.num_vertices)
+        self.tets32 = model.tets.to(torch.int32).contiguous()  # the tets do not change within a block
+        # Every step works on the same arrays: buffers, Warp views and launches are kept
+        # (about 20 launches a step; issue 17's loop overhead).
+        self.step_cache = StepCache()
         self.reverted = 0
 
     def surfel_normals(self, view: int):
@@ -179,7 +188,7 @@ class GeometryBlock:
         n_gs, a_gs = self.surfel_normals(view)
         prior = self.normals[view] if self.normals is not None else None
         l_mask, l_norm, l_prior = mesh_view_losses(out["alpha"], out["normal"], self.masks[view], n_gs, a_gs,
-                                                   prior).unbind()
+                                                   prior, cache=self.step_cache).unbind()
         return l_mask, l_norm, (l_prior if prior is not None else None)
 
     def view_of(self, t: int, seed: int) -> int:
@@ -203,9 +212,10 @@ class GeometryBlock:
         l_mask, l_norm, l_prior = self.view_losses(out, view)
         lam = mesh_lambda(t, self.total)
         lam_cond = 1.0 if (not cfg.two_stage_hc or k >= self.block_iters // 2) else 0.0
-        l_hc = en.hc_laplacian(x, self.bf_np, lam_cond=lam_cond) / self.mean_edge**2
+        c = self.step_cache
+        l_hc = en.hc_laplacian(x, self.bf_np, lam_cond=lam_cond, cache=c) / self.mean_edge**2
         p0, p1 = cfg.barrier_p
-        l_w, l_inv = en.biharmonic_and_inversion(x, p=p0 + (p1 - p0) * (t / max(self.total - 1, 1)))
+        l_w, l_inv = en.biharmonic_and_inversion(x, p=p0 + (p1 - p0) * (t / max(self.total - 1, 1)), cache=c)
         if cfg.hc_floor > lam:
             reg = cfg.hc_floor * cfg.c_hc * l_hc + lam * cfg.c_w * l_w
         else:  # the paper's form, bit for bit (tests/test_regression.py records its meshes)
@@ -215,10 +225,10 @@ class GeometryBlock:
             loss = loss + cfg.w_prior * l_prior
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
-        x_old = x.detach().clone()
+        x_old = c.buffer("step.x_old", x.shape, x.dtype, x.device).copy_(x.detach())
         self.opt.step()
-        self.reverted = self.reverted + revert_inverting_moves(x.data, x_old, self.model.tets, floor=self.floor,
-                                                                 incidence=self.incidence)
+        self.reverted = self.reverted + revert_inverting_moves(x.data, x_old, self.tets32, floor=self.floor,
+                                                                 incidence=self.incidence, cache=c)
         terms = {"loss": loss, "mask": l_mask, "norm": l_norm, "hc": l_hc, "w": l_w, "inv": l_inv}
         if l_prior is not None:
             terms["prior"] = l_prior
