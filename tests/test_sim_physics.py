@@ -401,6 +401,66 @@ def test_parallel_sweep_is_thread_independent_and_converges_with_the_serial_one(
         SolverVBDNeoHookean(m, fuse_colors=False, sweep_parts=2)
 
 
+def test_recorded_launches_give_the_bits_of_fresh_ones():
+    """The solver replays its substep launches (holowarp.ops.launches.LaunchCache). Through an
+    impact of two bodies with gravity, a ground and friction, over steps of changing length
+    (so the substep length, the BDF2/Euler switch and the structs' fields changed in place,
+    the surfaces' interpolation weights and friction_eps, all change), on one and two threads, the states must be those of fresh launches bit
+    for bit: a stale struct or scalar in a recorded launch would show here. A block on its
+    own, whose sweep is split into domains, checks the chunked launches the same way."""
+    from holowarp.device import set_cpu_threads
+    from holowarp.ops.launches import LaunchCache
+
+    class Fresh(LaunchCache):
+        def launch(self, site, kernel, dim, inputs=(), outputs=(), device=None):
+            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device)
+
+    lower = box_tetmesh((3, 3, 2), (0.1, 0.1, 0.05))
+    upper = box_tetmesh((3, 3, 2), (0.1, 0.1, 0.05), (0.02, 0.0, 0.06))
+    b = ModelBuilder()
+    b.add_soft_mesh(lower, pos=(0, 0, 0.0), youngs_modulus=2e5, poissons_ratio=0.45, friction=0.5)
+    b.add_soft_mesh(upper, vel=(0.3, 0, -1.5), youngs_modulus=2e5, poissons_ratio=0.45, friction=0.5)
+    b.add_ground_plane()
+    m = b.finalize()
+    out = {}
+    try:
+        for threads in (1, 2):
+            set_cpu_threads(threads)
+            for recorded in (True, False):
+                sol = SolverVBDNeoHookean(m, iterations=3, substeps=4, integrator="bdf2")
+                if not recorded:
+                    sol._launches = Fresh()
+                s0, s1, c, t = m.state(), m.state(), m.control(), 0.0
+                for k in range(12):  # steps of changing length: every scalar of the substep changes
+                    dt = DT if k % 3 else DT / 2
+                    c.set_time(t, t + dt)
+                    sol.step(s0, s1, c, None, dt)
+                    s0, s1, t = s1, s0, t + dt
+                out[threads, recorded] = (s0.positions(), s0.velocities())
+    finally:
+        set_cpu_threads(None)
+    for threads in (1, 2):
+        assert all(np.array_equal(a, f) for a, f in zip(out[threads, True], out[threads, False]))
+    moved = np.abs(out[1, True][0] - m.rest_positions).max()
+    assert moved > 0.005  # the upper body fell onto the lower one (0.01 m gap)
+    b = ModelBuilder()
+    b.add_soft_mesh(box_tetmesh((9, 9, 9), (0.1, 0.1, 0.1)), pos=(0, 0, 0.02), youngs_modulus=2e5, poissons_ratio=0.4)
+    b.add_ground_plane()
+    single = b.finalize()
+    try:
+        set_cpu_threads(2)
+        got = []
+        for recorded in (True, False):
+            sol = SolverVBDNeoHookean(single, iterations=2, substeps=3, sweep_parts=2)
+            assert len(sol._sweeps[0][1][0]) >= 2  # a phase of several domains: chunked launches
+            if not recorded:
+                sol._launches = Fresh()
+            got.append(_run(single, sol, 6)[0].positions())
+    finally:
+        set_cpu_threads(None)
+    assert np.array_equal(got[0], got[1]) and np.abs(got[0] - single.rest_positions).max() > 1e-3
+
+
 def test_tet_stats_count_inverted_tets_and_total_volume():
     mesh = box_tetmesh((2, 2, 2), (1.0, 1.0, 1.0))
     b = ModelBuilder()

@@ -12,6 +12,7 @@ import torch
 import warp as wp
 
 from holowarp.device import CPU_PIECES, init_warp, run_chunks, thread_chunks
+from holowarp.ops.launches import LaunchCache
 
 __all__ = ["wp_device", "to_wp", "torch_stream", "thread_chunks", "run_chunks", "CPU_PIECES", "StepCache", "FRESH"]
 
@@ -47,7 +48,7 @@ def torch_stream(t: torch.Tensor):
 
 
 
-class StepCache:
+class StepCache(LaunchCache):
     """Buffers, Warp views and recorded launches of a step repeated on same-shaped data.
 
     A geometry step (:class:`holowarp.stages.geometry.GeometryBlock`) launches about twenty
@@ -58,9 +59,9 @@ class StepCache:
 
     - :meth:`buffer`: the same torch tensor while the shape, dtype and device hold;
     - :meth:`view`: the same Warp view while the tensor's storage, shape and strides hold;
-    - :meth:`launch`: a launch recorded once (``wp.launch(record_cmd=True)``); a repeat
-      re-packs only the arguments that changed (a different view object, a different scalar
-      value), so one whose arrays are all unchanged costs about 3 us.
+    - :meth:`launch` (:class:`holowarp.ops.launches.LaunchCache`): a launch recorded once; a repeat
+      re-packs only the arguments that changed, so one whose arrays are all unchanged costs
+      about 3 us.
 
     The buffers are reused: a value one step saves for its backward pass must be consumed
     before the same site runs again (one forward, then its backward, as a training step
@@ -70,9 +71,9 @@ class StepCache:
     """
 
     def __init__(self):
+        super().__init__()
         self._buffers: dict = {}
         self._views: dict = {}
-        self._launches: dict = {}
 
     def buffer(self, site: str, shape, dtype: torch.dtype, device, *, zero: bool = False) -> torch.Tensor:
         """A tensor of ``shape``/``dtype`` on ``device`` owned by ``site`` (zeroed when
@@ -98,35 +99,6 @@ class StepCache:
         a = to_wp(t, dtype)
         self._views[site] = (key, a)
         return a
-
-    def launch(self, site: str, kernel, dim: int, inputs=(), outputs=(), device=None) -> None:
-        """``wp.launch(kernel, dim, inputs, outputs, device)``, recorded at the first call of
-        ``site`` (and again when the kernel or device changes) and replayed after: array
-        arguments are compared by identity (pass views from :meth:`view`), scalars by value,
-        and only those that differ are packed again."""
-        args = (*inputs, *outputs)
-        rec = self._launches.get(site)
-        if rec is None or rec[0] is not kernel or rec[1] != device or len(rec[4]) != len(args):
-            cmd = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, record_cmd=True)
-            self._launches[site] = rec = [kernel, device, cmd, int(dim), list(args)]
-        else:
-            cmd, old = rec[2], rec[4]
-            for i, a in enumerate(args):
-                o = old[i]
-                if a is o:
-                    continue
-                if isinstance(a, wp.array) or isinstance(o, wp.array) or _scalar(a) != _scalar(o):
-                    cmd.set_param_at_index(i, a)
-                old[i] = a
-            if rec[3] != int(dim):
-                cmd.set_dim(int(dim))
-                rec[3] = int(dim)
-        rec[2].launch()
-
-
-def _scalar(v):
-    """A scalar launch argument's value (Warp scalar types wrap theirs in ``.value``)."""
-    return getattr(v, "value", v)
 
 
 class _Fresh:

@@ -96,6 +96,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from holowarp.device import init_warp, run_chunks
+from holowarp.ops.launches import LaunchCache
 from holowarp.errors import InputError
 
 __all__ = [
@@ -279,6 +280,10 @@ class SolverVBDNeoHookean:
         m = model
         c = np.sqrt((m.tet_lambda_host + 2.0 * m.tet_mu_host) / m.tet_density_host).max()
         self._wave_time = edge / float(c)  # s: a pressure wave crossing one boundary edge
+        # A substep launches a few dozen kernels on the same arrays; recorded launches
+        # replay them without re-packing their arguments (issue 17: a two-body frame at 64
+        # substeps made about 1,900 launches).
+        self._launches = LaunchCache()
         self._init_arrays()
         self._init_contacts()
 
@@ -415,28 +420,29 @@ class SolverVBDNeoHookean:
         dev = m.device
         c = self._con
         pad = self.contact_radius + self.contact_margin
-        wp.launch(K.vbd_triangle_bounds, dim=len(m.tris), inputs=[self._q_start, self._dq, m.tri_indices, pad],
-                  outputs=[self._tri_lo, self._tri_hi], device=dev)
+        self._launch("vbd_triangle_bounds", K.vbd_triangle_bounds, dim=len(m.tris),
+                     inputs=[self._q_start, self._dq, m.tri_indices, pad], outputs=[self._tri_lo, self._tri_hi],
+                     device=dev)
         self._bvh.refit()
         self._vnormal.zero_()
-        wp.launch(K.vbd_vertex_normals, dim=len(m.tris), inputs=[self._q_start, m.tri_indices],
-                  outputs=[self._vnormal], device=dev)
+        self._launch("vbd_vertex_normals", K.vbd_vertex_normals, dim=len(m.tris),
+                     inputs=[self._q_start, m.tri_indices], outputs=[self._vnormal], device=dev)
         Vs = m.surface_vertices.shape[0]
-        wp.launch(K.vbd_detect_contacts, dim=Vs, inputs=[
+        self._launch("vbd_detect_contacts", K.vbd_detect_contacts, dim=Vs, inputs=[
             self._bvh.id, m.surface_vertices, self._q_start, self._dq, self._rest, m.particle_component,
             m.tri_indices, m.tri_component, self._tri_adj, self._vnormal, int(self.self_collision),
             self.self_collision_exclusion,
             self._contact_k, m.particle_friction, self._slot_comp, self._slot_d2,
         ], outputs=[c.slot_count, c.slot_tri, c.slot_w, c.slot_n, c.slot_k, c.slot_mu], device=dev)
         self._rev_count.zero_()
-        wp.launch(K.vbd_count_reverse_contacts, dim=Vs,
-                  inputs=[m.surface_vertices, c.slot_count, c.slot_tri, m.tri_indices], outputs=[self._rev_count],
-                  device=dev)
+        self._launch("vbd_count_reverse_contacts", K.vbd_count_reverse_contacts, dim=Vs,
+                     inputs=[m.surface_vertices, c.slot_count, c.slot_tri, m.tri_indices], outputs=[self._rev_count],
+                     device=dev)
         wp.utils.array_scan(self._rev_count, c.rev_offsets, inclusive=False)
         self._rev_cursor.zero_()
-        wp.launch(K.vbd_fill_reverse_contacts, dim=Vs,
-                  inputs=[m.surface_vertices, c.slot_count, c.slot_tri, m.tri_indices, c.rev_offsets,
-                          self._rev_cursor], outputs=[c.rev], device=dev)
+        self._launch("vbd_fill_reverse_contacts", K.vbd_fill_reverse_contacts, dim=Vs,
+                     inputs=[m.surface_vertices, c.slot_count, c.slot_tri, m.tri_indices, c.rev_offsets,
+                             self._rev_cursor], outputs=[c.rev], device=dev)
 
     def _land(self, h: float) -> None:
         """Land the rigid initial guess on the ground, the plates and other pieces (see the
@@ -451,37 +457,37 @@ class SolverVBDNeoHookean:
         surf = self._surf
         self._depth_cs.fill_(-1.0e30)
         if m.surface_count:
-            wp.launch(K.vbd_guess_depth, dim=N, inputs=[self._q_start, self._dq, m.particle_component, surf],
-                      outputs=[self._depth_cs], device=dev)
+            self._launch("vbd_guess_depth", K.vbd_guess_depth, dim=N,
+                         inputs=[self._q_start, self._dq, m.particle_component, surf], outputs=[self._depth_cs],
+                         device=dev)
         touch = self.contact_radius + self.contact_margin
-        wp.launch(K.vbd_land_components, dim=C, inputs=[self._component_free, self._disp, self._sum_m, self._sum_ma,
-                                                         wp.vec3(*map(float, m.gravity)), h, surf, self._depth_cs,
-                                                         touch],
-                  outputs=[self._shift, self._eff_disp, self._level], device=dev)
-        wp.launch(K.vbd_apply_shift, dim=N, inputs=[self._dq, m.particle_inv_mass, m.particle_component,
-                                                     self._component_free, self._shift], device=dev)
+        self._launch("vbd_land_components", K.vbd_land_components, dim=C,
+                     inputs=[self._component_free, self._disp, self._sum_m, self._sum_ma,
+                             wp.vec3(*map(float, m.gravity)), h, surf, self._depth_cs, touch],
+                     outputs=[self._shift, self._eff_disp, self._level], device=dev)
+        shift = [self._dq, m.particle_inv_mass, m.particle_component, self._component_free, self._shift]
+        self._launch("vbd_apply_shift", K.vbd_apply_shift, dim=N, inputs=shift, device=dev)
         if self.contacts_enabled:
             self._detect()
             Vs = m.surface_vertices.shape[0]
             c = self._con
             for _ in range(_SUPPORT_HOPS):
-                wp.launch(K.vbd_support_levels, dim=Vs, inputs=[
+                self._launch("vbd_support_levels", K.vbd_support_levels, dim=Vs, inputs=[
                     m.surface_vertices, m.particle_component, c.slot_count, c.slot_tri, m.tri_component,
                 ], outputs=[self._level], device=dev)
             for _ in range(_BODY_LANDING_ROUNDS):
                 self._shift_pos.zero_()
                 self._shift_neg.zero_()
-                wp.launch(K.vbd_body_landing, dim=Vs, inputs=[
-                    m.surface_vertices, self._q_start, self._dq, m.particle_component, self._component_free, self._sum_m, self._level,
-                    self._eff_disp, c, m.tri_component,
+                self._launch("vbd_body_landing", K.vbd_body_landing, dim=Vs, inputs=[
+                    m.surface_vertices, self._q_start, self._dq, m.particle_component, self._component_free,
+                    self._sum_m, self._level, self._eff_disp, c, m.tri_component,
                 ], outputs=[self._shift_pos, self._shift_neg], device=dev)
-                wp.launch(K.vbd_merge_shift, dim=C, inputs=[self._shift_pos, self._shift_neg],
-                          outputs=[self._shift, self._eff_disp], device=dev)
-                wp.launch(K.vbd_apply_shift, dim=N, inputs=[self._dq, m.particle_inv_mass, m.particle_component,
-                                                             self._component_free, self._shift], device=dev)
+                self._launch("vbd_merge_shift", K.vbd_merge_shift, dim=C, inputs=[self._shift_pos, self._shift_neg],
+                             outputs=[self._shift, self._eff_disp], device=dev)
+                self._launch("vbd_apply_shift", K.vbd_apply_shift, dim=N, inputs=shift, device=dev)
         if m.surface_count:
-            wp.launch(K.vbd_guess_project, dim=N, inputs=[self._q_start, self._dq, m.particle_inv_mass, surf],
-                      device=dev)
+            self._launch("vbd_guess_project", K.vbd_guess_project, dim=N,
+                         inputs=[self._q_start, self._dq, m.particle_inv_mass, surf], device=dev)
 
     # ------------------------------------------------------------------ stepping
     @property
@@ -554,19 +560,19 @@ class SolverVBDNeoHookean:
             for a in (self._sum_m, self._sum_mx, self._sum_mv, self._sum_ma, self._sum_ml, self._ang,
                       self._inertia_tensor):
                 a.zero_()
-            wp.launch(K.vbd_predict, dim=N, inputs=[
+            self._launch("vbd_predict", K.vbd_predict, dim=N, inputs=[
                 src.particle_q, src.particle_qd, src.particle_qdd, m.particle_mass, m.particle_inv_mass,
                 m.particle_component, src.particle_dq, g, h, int(bdf2), surf,
             ], outputs=[self._q_start, self._qd_start, self._inertia, self._lag, self._surf_force, self._sum_m,
                         self._sum_mx, self._sum_mv, self._sum_ma, self._sum_ml], device=dev)
-            wp.launch(K.vbd_component_inertia, dim=N, inputs=[
+            self._launch("vbd_component_inertia", K.vbd_component_inertia, dim=N, inputs=[
                 self._q_start, self._qd_start, m.particle_mass, m.particle_component, self._sum_m, self._sum_mx,
             ], outputs=[self._ang, self._inertia_tensor], device=dev)
-            wp.launch(K.vbd_component_motion, dim=self._sum_m.shape[0], inputs=[
+            self._launch("vbd_component_motion", K.vbd_component_motion, dim=self._sum_m.shape[0], inputs=[
                 self._sum_m, self._sum_mx, self._sum_mv, self._sum_ma, self._sum_ml, self._ang, self._inertia_tensor,
                 g, h, int(bdf2),
             ], outputs=[self._com, self._disp, self._rot], device=dev)
-            wp.launch(K.vbd_rigid_guess, dim=N, inputs=[
+            self._launch("vbd_rigid_guess", K.vbd_rigid_guess, dim=N, inputs=[
                 self._q_start, self._qd_start, src.particle_qdd, m.particle_inv_mass, m.particle_component,
                 self._component_free, self._com, self._disp, self._rot, self._lag, g, h, int(bdf2),
                 self.guess_blend(h),
@@ -574,7 +580,7 @@ class SolverVBDNeoHookean:
             self._land(h)
             for it in range(self.iterations):
                 self._sweep(self._sweeps[it % 2], h, h_eff)
-            wp.launch(K.vbd_finalize, dim=N, inputs=[
+            self._launch("vbd_finalize", K.vbd_finalize, dim=N, inputs=[
                 self._dq, self._lag, self._q_start, self._qd_start, m.particle_inv_mass, surf,
                 m.surface_restitution, self._surf_force, h, h_eff, int(use_bdf2), thresh, damp,
                 1.0 / n_sub,
@@ -582,17 +588,20 @@ class SolverVBDNeoHookean:
                         state_out.surface_force], device=dev)
             state_out.substep_length = h
 
+    def _launch(self, site, kernel, *, dim, inputs=(), outputs=(), device=None) -> None:
+        """``wp.launch`` through the solver's :class:`holowarp.ops.launches.LaunchCache`."""
+        self._launches.launch(site, kernel, dim, inputs, outputs, device)
+
     def _sweep(self, sweep, h: float, h_eff: float) -> None:
         """One Gauss-Seidel sweep ``(order, phases)`` of the block steps: the phases one
         after another, the domains of a phase at once on the kernel thread pool."""
         from holowarp.kernels import sim_vbd as K
 
-        wp = init_warp()
         m = self.model
         order, phases = sweep
 
         def solve(off, cnt):
-            wp.launch(K.vbd_solve_vertices, dim=cnt, inputs=[
+            self._launch(("vbd_solve_vertices", id(order), off), K.vbd_solve_vertices, dim=cnt, inputs=[
                 order, off, self._dq, self._q_start, self._inertia, self._lag, m.particle_mass,
                 m.particle_inv_mass, 1.0 / (h_eff * h_eff), h_eff / h, self._tets, self._surf, self._con,
                 self._surf_force,
