@@ -409,11 +409,7 @@ def test_recorded_launches_give_the_bits_of_fresh_ones():
     for bit: a stale struct or scalar in a recorded launch would show here. A block on its
     own, whose sweep is split into domains, checks the chunked launches the same way."""
     from holowarp.device import set_cpu_threads
-    from holowarp.ops.launches import LaunchCache
-
-    class Fresh(LaunchCache):
-        def launch(self, site, kernel, dim, inputs=(), outputs=(), device=None):
-            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device)
+    from holowarp.ops._warp import FRESH  # every launch anew
 
     lower = box_tetmesh((3, 3, 2), (0.1, 0.1, 0.05))
     upper = box_tetmesh((3, 3, 2), (0.1, 0.1, 0.05), (0.02, 0.0, 0.06))
@@ -429,7 +425,7 @@ def test_recorded_launches_give_the_bits_of_fresh_ones():
             for recorded in (True, False):
                 sol = SolverVBDNeoHookean(m, iterations=3, substeps=4, integrator="bdf2")
                 if not recorded:
-                    sol._launches = Fresh()
+                    sol._launches = FRESH
                 s0, s1, c, t = m.state(), m.state(), m.control(), 0.0
                 for k in range(12):  # steps of changing length: every scalar of the substep changes
                     dt = DT if k % 3 else DT / 2
@@ -454,7 +450,7 @@ def test_recorded_launches_give_the_bits_of_fresh_ones():
             sol = SolverVBDNeoHookean(single, iterations=2, substeps=3, sweep_parts=2)
             assert len(sol._sweeps[0][1][0]) >= 2  # a phase of several domains: chunked launches
             if not recorded:
-                sol._launches = Fresh()
+                sol._launches = FRESH
             got.append(_run(single, sol, 6)[0].positions())
     finally:
         set_cpu_threads(None)

@@ -47,7 +47,6 @@ def torch_stream(t: torch.Tensor):
     return contextlib.nullcontext()
 
 
-
 class StepCache(LaunchCache):
     """Buffers, Warp views and recorded launches of a step repeated on same-shaped data.
 
@@ -81,7 +80,7 @@ class StepCache(LaunchCache):
         shape = tuple(int(s) for s in shape)
         t = self._buffers.get(site)
         if t is None or tuple(t.shape) != shape or t.dtype != dtype or t.device != torch.device(device):
-            t = self._buffers[site] = (torch.zeros if zero else torch.empty)(shape, dtype=dtype, device=device)
+            t = self._buffers[site] = _Fresh.buffer(site, shape, dtype, device, zero=zero)
         elif zero:
             t.zero_()
         return t

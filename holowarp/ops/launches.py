@@ -34,7 +34,7 @@ class LaunchCache:
         caller changed in place (the simulator's surface weights, friction_eps) reach the
         kernel whatever Warp keeps of them. Distinct sites may launch from different threads
         at once (:func:`holowarp.device.run_chunks`)."""
-        wp = init_warp()
+        wp, plain, scalar = _warp_types()
         args = (*inputs, *outputs)
         rec = self._launches.get(site)
         if rec is None or rec[0] is not kernel or rec[1] != device or len(rec[4]) != len(args):
@@ -42,7 +42,6 @@ class LaunchCache:
             self._launches[site] = rec = [kernel, device, cmd, dim, list(args)]
         else:
             cmd, old = rec[2], rec[4]
-            plain, scalar = _comparable()
             for i, a in enumerate(args):
                 o = old[i]
                 if isinstance(a, wp.array):
@@ -60,8 +59,9 @@ class LaunchCache:
 
 
 @functools.lru_cache(maxsize=None)
-def _comparable():
-    """The launch arguments :meth:`LaunchCache.launch` compares by value: Python numbers, and
-    Warp's scalar objects (``wp.float32(x)``, by their ``value``)."""
+def _warp_types():
+    """``(warp, numbers, Warp scalar base)``, looked up once: the module, and the launch
+    arguments :meth:`LaunchCache.launch` compares by value, Python numbers and Warp's scalar
+    objects (``wp.float32(x)``, by their ``value``)."""
     wp = init_warp()
-    return (int, float, bool), type(wp.float32(0.0)).__mro__[-2]
+    return wp, (int, float, bool), type(wp.float32(0.0)).__mro__[-2]
