@@ -54,3 +54,32 @@ def test_probe_counts_host_data_as_uploads_but_not_warp_memory_wrapped_in_place(
             wrapped = wp.to_torch(warp_cpu)  # not an upload: Warp's memory, wrapped in place
     assert probe.summary()["uploads_per_iter"] == 3
     np.testing.assert_array_equal(wrapped.numpy(), host)
+
+
+def test_probe_times_replayed_recorded_launches_like_fresh_ones():
+    # The geometry step and the simulator replay recorded launches (LaunchCache) instead of
+    # calling wp.launch; a probe that missed them counted their kernels as host time.
+    import numpy as np
+    import warp as wp
+
+    from holowarp.bench.probe import Probe
+    from holowarp.kernels import tet_energy as K
+    from holowarp.ops.launches import LaunchCache
+
+    rng = np.random.default_rng()
+    x = rng.normal(size=(9, 3)).astype(np.float32)
+    tets = np.stack([rng.permutation(9)[:4] for _ in range(5)]).astype(np.int32)
+    args = [wp.array(x, dtype=wp.vec3, device="cpu"), wp.array(tets, dtype=wp.vec4i, device="cpu")]
+    vol = wp.zeros(5, dtype=wp.float32, device="cpu")
+    kernel = K.signed_volume_kernel.get_overload(K.signed_volume_kernel.infer_argument_types([*args, vol]))
+    cache = LaunchCache()
+    with Probe("cpu") as probe:
+        with probe.region():
+            for _ in range(3):  # recorded at the first call, replayed after
+                cache.launch("vol", kernel, 5, args, [vol], "cpu")
+    s = probe.summary()
+    assert s["launches_per_iter"] == 3
+    assert list(s["top_kernels_ms"]) == [kernel.key]
+    a, b, c, d = (x[tets[:, k]] for k in range(4))
+    np.testing.assert_allclose(vol.numpy(), np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a)) / 6, rtol=1e-5, atol=1e-6)
+    assert wp.Launch.launch.__qualname__ == "Launch.launch"  # put back on exit

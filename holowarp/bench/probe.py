@@ -2,7 +2,9 @@
 
 :class:`Probe` is a debug-mode instrument for the pipeline benchmark. While it is active:
 
-- every ``wp.launch`` (and Warp's scan/sort utilities) is timed; on CUDA the device is
+- every ``wp.launch``, every replay of a recorded one (``wp.Launch.launch``: the geometry
+  step's :class:`holowarp.ops._warp.StepCache` and the simulator replay their launches) and
+  Warp's scan/sort utilities are timed; on CUDA the device is
   synchronised around each launch so the wall time is the kernel's. Launches from the CPU
   thread pool overlap, so kernel time is the length of the *union* of the launch intervals;
 - every torch op is timed at the dispatcher (a ``TorchDispatchMode``: each ATen op once,
@@ -100,7 +102,7 @@ class Probe:
 
     def _timed_launch(self, orig):
         def launch(*args, **kwargs):
-            if not self._active:
+            if not self._active or kwargs.get("record_cmd"):  # recording runs nothing
                 return orig(*args, **kwargs)
             if self.cuda:
                 wp.synchronize_device()
@@ -111,7 +113,9 @@ class Probe:
                 if self.cuda:
                     wp.synchronize_device()
                 t1 = time.perf_counter()
-                key = getattr(args[0], "key", None) or getattr(orig, "__name__", "warp")
+                first = args[0] if args else None  # a kernel, or a recorded Launch (its self)
+                key = (getattr(first, "key", None) or getattr(getattr(first, "kernel", None), "key", None)
+                       or getattr(orig, "__name__", "warp"))
                 with self._lock:
                     self._intervals.append((t0, t1))
                     self._launches += 1
@@ -130,6 +134,7 @@ class Probe:
 
     def __enter__(self):
         self._patch(wp, "launch", self._timed_launch)
+        self._patch(wp.Launch, "launch", self._timed_launch)
         for name in ("array_scan", "radix_sort_pairs"):
             self._patch(wp.utils, name, self._timed_launch)
         for name in ("numpy", "tolist"):
