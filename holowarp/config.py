@@ -970,8 +970,9 @@ class ImproveConfig:
             5% of a fast run) refit them. 0 skips the refit. Longer refits keep raising the
             held-out PSNR (finishes from the same checkpoints, fast, 128², 2026-12-07; 200 ->
             600 steps): bob 32.31 -> 32.88 dB, bowl 37.01 -> 37.71, mug 36.84 -> 37.62, lego
-            28.27 -> 29.39 (29.95 at 1200), the meshes unchanged; the 400 steps took 22.5 s alone on
-            bob (18.1 -> 40.6 s for §7b and its refit), 10% of the main job's time, which the surfels alone do not justify in the fast preset.
+            28.27 -> 29.39 (29.95 at 1200), the meshes unchanged. The 400 steps took 22.5 s
+            alone on bob (18.1 -> 40.6 s for §7b and its refit), 10% of the main job's time,
+            which the surfels alone do not justify in the fast preset.
     """
 
     enabled: bool = True
