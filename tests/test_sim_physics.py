@@ -405,9 +405,10 @@ def test_recorded_launches_give_the_bits_of_fresh_ones():
     """The solver replays its substep launches (holowarp.ops.launches.LaunchCache). Through an
     impact of two bodies with gravity, a ground and friction, over steps of changing length
     (so the substep length, the BDF2/Euler switch and the structs' fields changed in place,
-    the surfaces' interpolation weights and friction_eps, all change), on one and two threads, the states must be those of fresh launches bit
-    for bit: a stale struct or scalar in a recorded launch would show here. A block on its
-    own, whose sweep is split into domains, checks the chunked launches the same way."""
+    the surfaces' interpolation weights and friction_eps, all change), on one and two
+    threads, the states must be those of fresh launches bit for bit: a stale struct or
+    scalar in a recorded launch would show here. A block on its own, whose sweep is split
+    into domains, checks the chunked launches the same way."""
     from holowarp.device import set_cpu_threads
     from holowarp.ops._warp import FRESH  # every launch anew
 

@@ -53,7 +53,7 @@ class StepCache(LaunchCache):
     A geometry step (:class:`holowarp.stages.geometry.GeometryBlock`) launches about twenty
     small kernels, most on arrays that are the same from step to step. A fresh ``wp.launch``
     spends about 15 us packing its arguments and each ``wp.from_torch`` view about 6 us on
-    this CPU (``/work/scratch/s22/launchcost.py``), longer than many of those kernels run.
+    this project's 2-core CPU, longer than many of those kernels run.
     Keyed by call site (a string the caller picks, one per use), a cache hands back:
 
     - :meth:`buffer`: the same torch tensor while the shape, dtype and device hold;

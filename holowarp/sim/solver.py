@@ -96,8 +96,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from holowarp.device import init_warp, run_chunks
-from holowarp.ops.launches import LaunchCache
 from holowarp.errors import InputError
+from holowarp.ops.launches import LaunchCache
 
 __all__ = [
     "SolverVBDNeoHookean",
