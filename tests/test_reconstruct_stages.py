@@ -806,6 +806,99 @@ def test_depth_carving_empties_a_dent_the_silhouettes_fill_and_keeps_the_solid()
         assert (hull_only[dent] < 0).mean() > 0.9 and (hull_only[solid] < 0).all()
 
 
+def _squares_view(squares, res=64, f=70.0):
+    """An identity camera (OpenCV, looking down +z) at ``res``² seeing planar squares, each
+    ``(unit normal facing the camera, point on the plane, half-size)`` (extent measured in
+    the plane's x/y world coordinates): exact depth (H, W), mask and world normal map of the
+    nearest square per pixel, and the intrinsics."""
+    K = np.array([[f, 0.0, res / 2], [0.0, f, res / 2], [0.0, 0.0, 1.0]])
+    u, v = np.meshgrid(np.arange(res) + 0.5, np.arange(res) + 0.5)
+    ray = np.stack([(u - res / 2) / f, (v - res / 2) / f, np.ones_like(u)], -1)
+    depth = np.full((res, res), np.inf)
+    normal = np.zeros((res, res, 3))
+    for n, p0, half in squares:
+        n = np.asarray(n, float) / np.linalg.norm(n)
+        z = (n @ np.asarray(p0, float)) / (ray @ n)
+        X = z[..., None] * ray
+        inside = (np.abs(X[..., 0] - p0[0]) < half) & (np.abs(X[..., 1] - p0[1]) < half) & (z > 0) & (z < depth)
+        depth[inside] = z[inside]
+        normal[inside] = n
+    mask = np.isfinite(depth)
+    return np.where(mask, depth, 0.0), mask.astype(np.float32), normal, K
+
+
+def _lid(depth, mask, height):
+    """``depth`` raised by a smooth bump of ``height`` that vanishes within 2 pixels of the
+    mask's outline (a lid, as stage 0 leaves over a cavity's floor; the outline, which the
+    silhouettes pin, stays)."""
+    from scipy.ndimage import distance_transform_edt
+
+    d = distance_transform_edt(mask > 0.5)
+    return np.where(mask > 0.5, depth - height * np.clip((d - 2.5) / (d.max() - 2.5), 0, 1) ** 2, 0.0)
+
+
+def test_depth_from_normals_lowers_a_lid_to_the_plane_its_normals_describe():
+    """A tilted square seen whole: its depth raised by a smooth lid away from the outline
+    comes back to the plane (exact for a plane), anchored by the outline alone."""
+    from holowarp.carve import depth_from_normals
+
+    depth, mask, normal, K = _squares_view([((0.3, -0.2, -1.0), (0.0, 0.0, 3.0), 0.8)])
+    lid = _lid(depth, mask, 0.15)
+    out = depth_from_normals(lid, mask, normal, np.eye(4), K)
+    m = mask > 0.5
+    assert m.sum() > 1000 and np.abs(lid - depth)[m].max() > 0.14
+    assert np.abs(out - depth)[m].max() < 1e-4 * depth[m].max()
+    assert (out[~m] == lid[~m]).all()
+
+
+def test_depth_from_normals_keeps_an_occluding_step_and_corrects_behind_it():
+    """A near square over part of a far one: the exact depths stay as they are (the step
+    between them is cut, never smoothed over); a lid on the far square comes back to its
+    plane through the far square's own outline, and the near square stays exact; with every
+    edge cut (``jump`` 0) nothing is corrected."""
+    from holowarp.carve import depth_from_normals
+
+    squares = [((0.0, 0.0, -1.0), (-0.35, 0.0, 2.2), 0.3), ((0.2, 0.1, -1.0), (0.0, 0.0, 3.2), 0.9)]
+    depth, mask, normal, K = _squares_view(squares)
+    m = mask > 0.5
+    out = depth_from_normals(depth, mask, normal, np.eye(4), K)
+    assert np.abs(out - depth)[m].max() < 1e-5 * depth[m].max()
+    near = m & (depth < 2.5)
+    far = m & ~near
+    lifted = np.where(far, _lid(depth, mask, 0.2), depth)
+    out = depth_from_normals(lifted, mask, normal, np.eye(4), K)
+    assert np.abs(lifted - depth)[far].max() > 0.1
+    assert np.abs(out - depth)[far].max() < 1e-3 * depth[far].max()
+    assert np.abs(out - depth)[near].max() < 1e-5 * depth[near].max()
+    # Every edge cut (jump 0): no pixel is corrected.
+    assert (depth_from_normals(lifted, mask, normal, np.eye(4), K, jump=0.0) == lifted.astype(np.float32)).all()
+
+
+def test_depth_carved_adds_the_corrected_maps_at_their_own_view_count():
+    """The corrected maps carve where they agree in ``depth_normals_min_views`` views; absent
+    (no normal maps) the carve is the stage-0 maps' alone."""
+    from holowarp.carve import in_front_of_surface
+    from holowarp.stages.topology import depth_carved
+
+    rng = np.random.default_rng(3)
+    depth, mask, normal, K = _squares_view([((0.0, 0.0, -1.0), (0.0, 0.0, 3.0), 0.8)])
+    n = 5
+    ds = Dataset(images=np.zeros((n, 64, 64, 3), np.float32), masks=np.repeat(mask[None], n, 0), K=np.repeat(K[None], n, 0),
+                 viewmats=np.repeat(np.eye(4)[None], n, 0), train_idx=np.arange(n), test_idx=np.zeros(0, int), name="sq")
+    depths = np.repeat(depth[None], n, 0).astype(np.float32)
+    alphas = np.repeat(mask[None], n, 0)
+    P = np.column_stack([rng.uniform(-0.3, 0.3, 400), rng.uniform(-0.3, 0.3, 400), rng.uniform(3.05, 3.45, 400)])
+    cfg = TopologyConfig()
+    assert not depth_carved(ds, P, np.arange(n), (depths, alphas), cfg, tol=0.02).any()
+    assert (depth_carved(ds, P, np.arange(n), (depths, alphas, None), cfg, tol=0.02)
+            == in_front_of_surface(ds, P, np.arange(n), depths, alphas, tol=0.02, min_views=2)).all()
+    deeper = depths + 0.5  # the corrected surface lies behind every point, the stage-0 one in front
+    for k in range(n + 1):
+        corrected = np.where(np.arange(n)[:, None, None] < k, deeper, depths)
+        carved = depth_carved(ds, P, np.arange(n), (depths, alphas, corrected), cfg, tol=0.02)
+        assert carved.all() if k >= cfg.depth_normals_min_views else not carved.any()
+
+
 def test_surfels_follow_the_element_improvement_through_the_parent_map(rng):
     from holowarp.config import ImproveConfig
     from holowarp.stages.improve import improve
@@ -880,6 +973,14 @@ def test_preflight_accepts_a_thin_plate_that_falls_between_the_coarse_nodes():
 @pytest.mark.parametrize("bad", [{"pit_solid_fraction": 0.4}, {"pit_solid_fraction": 1.5},
                                  {"pit_solid_fraction": "0.75"}, {"pit_rounds": -1}, {"pit_rounds": 2.5}])
 def test_pit_settings_out_of_range_are_refused_by_name(bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        TopologyConfig(**bad)
+
+
+@pytest.mark.parametrize("bad", [{"depth_normals_min_views": 0}, {"depth_normals_rim": 1.5},
+                                 {"depth_normals_jump": 0}, {"depth_normals_crease": -0.01},
+                                 {"depth_normals_grazing": 1.0}, {"depth_normals_grazing": "0.4"}])
+def test_depth_normals_settings_out_of_range_are_refused_by_name(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         TopologyConfig(**bad)
 

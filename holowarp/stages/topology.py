@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from holowarp.camera import project_points
-from holowarp.carve import hull_genus, in_front_of_surface, inside_hull
+from holowarp.carve import depth_from_normals, hull_genus, in_front_of_surface, inside_hull
 from holowarp.config import TopologyConfig, kept_components
 from holowarp.manifold import fill_sealed, open_to_outside, restore_elsewhere, restore_until_manifold
 from holowarp.tetgs import TetGaussians
@@ -52,6 +52,8 @@ __all__ = [
     "GaussianOptimizers",
     "ViewTensors",
     "EmptyEvidence",
+    "depth_carved",
+    "surfel_depth_maps",
     "after_first_prune",
     "gaussian_step",
     "init_colors",
@@ -63,9 +65,12 @@ __all__ = [
 ]
 
 
-def surfel_depth_maps(gaussians_ply, dataset, views, *, device="cpu"):
-    """Median depth and opacity maps (len(views), H, W) of the stage-0 surfels in
-    ``gaussians_ply`` seen by ``views`` (the 2DGS surface the depth carving tests against)."""
+def surfel_depth_maps(gaussians_ply, dataset, views, *, device="cpu", config: TopologyConfig | None = None):
+    """What the depth carve tests against: ``(depths, alphas, corrected)``, the median depth
+    and opacity maps (len(views), H, W) of the stage-0 surfels in ``gaussians_ply`` seen by
+    ``views`` (the 2DGS surface), and those depths corrected by the dataset's normal maps
+    (:func:`holowarp.carve.depth_from_normals` with ``config``'s ``depth_normals_*``), or
+    None (no normal maps, no ``config``, or ``config.depth_carve_normals`` off)."""
     from holowarp.gaussians import GaussianModel
 
     g = GaussianModel.from_ply(gaussians_ply, device=device)
@@ -76,7 +81,29 @@ def surfel_depth_maps(gaussians_ply, dataset, views, *, device="cpu"):
             out = g.render(dataset.viewmats[v], dataset.K[v], dataset.width, dataset.height)
             depths[j] = out["median_depth"].cpu().numpy()
             alphas[j] = out["alpha"].cpu().numpy()
-    return depths, alphas
+    corrected = None
+    if config is not None and config.depth_carve_normals and dataset.normals is not None:
+        corrected = np.stack([depth_from_normals(depths[j], alphas[j], dataset.normals[v], dataset.viewmats[v],
+                                                 dataset.K[v], jump=config.depth_normals_jump,
+                                                 crease=config.depth_normals_crease,
+                                                 grazing=config.depth_normals_grazing, rim=config.depth_normals_rim)
+                              for j, v in enumerate(views)])
+    return depths, alphas, corrected
+
+
+def depth_carved(dataset, points, views, depth_maps, config: TopologyConfig, *, tol: float) -> np.ndarray:
+    """(P,) bool: ``points`` the depth maps show empty: in front of the stage-0 surface
+    (``depth_maps[:2]``, depths and alphas) in ``config.depth_carve_min_views`` of ``views``,
+    or in front of the normal-corrected surface (``depth_maps[2]`` when present and not None)
+    in ``config.depth_normals_min_views`` (:attr:`TopologyConfig.depth_carve_normals`), by
+    more than ``tol``."""
+    depths, alphas, *rest = depth_maps
+    carved = in_front_of_surface(dataset, points, views, depths, alphas, tol=tol, min_views=config.depth_carve_min_views,
+                                 window=config.depth_carve_window)
+    if rest and rest[0] is not None:
+        carved |= in_front_of_surface(dataset, points, views, rest[0], alphas, tol=tol,
+                                      min_views=config.depth_normals_min_views, window=config.depth_carve_window)
+    return carved
 
 
 class EmptyEvidence:
@@ -116,16 +143,14 @@ class EmptyEvidence:
         from pathlib import Path
 
         if self._maps is None and Path(self.ply).is_file():
-            self._maps = surfel_depth_maps(self.ply, self.ds, self.views, device=self.device)
+            self._maps = surfel_depth_maps(self.ply, self.ds, self.views, device=self.device, config=self.cfg)
         c = mesh.vertices[mesh.tets].mean(axis=1)
         outside = ~inside_hull(self.ds, c, self.ds.train_idx, device=self.device)
         if self._maps is None:
             return outside, np.zeros_like(outside)
         E = mesh.edges()
         tol = self.cfg.depth_carve_tol * float(np.linalg.norm(mesh.vertices[E[:, 0]] - mesh.vertices[E[:, 1]], axis=1).mean())
-        return outside, in_front_of_surface(self.ds, c, self.views, *self._maps, tol=tol,
-                                             min_views=self.cfg.depth_carve_min_views,
-                                             window=self.cfg.depth_carve_window)
+        return outside, depth_carved(self.ds, c, self.views, self._maps, self.cfg, tol=tol)
 
 
 def _carve_views(views, config: TopologyConfig) -> np.ndarray:
@@ -135,8 +160,9 @@ def _carve_views(views, config: TopologyConfig) -> np.ndarray:
 
 def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig, *, depth_maps=None) -> np.ndarray:
     """Initial vertex field (V,), see the module docstring. ``depth_maps`` (the stage-0
-    surfels' ``(depths, alphas)`` at ``_carve_views(views)``) is what ``"depth_hull"``
-    carves with; without them it gives the visual hull's field."""
+    surfels' ``(depths, alphas[, corrected])`` at ``_carve_views(views)``,
+    :func:`surfel_depth_maps`) is what ``"depth_hull"`` carves with (:func:`depth_carved`);
+    without them it gives the visual hull's field."""
     V = mesh.num_vertices
     if config.phi_init == "inside":
         return np.full(V, -config.phi_inside)
@@ -149,8 +175,7 @@ def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig, *, depth_map
     if config.phi_init == "depth_hull" and depth_maps is not None:
         E0 = mesh.edges()
         tol = config.depth_carve_tol * float(np.linalg.norm(mesh.vertices[E0[:, 0]] - mesh.vertices[E0[:, 1]], axis=1).mean())
-        inside &= ~in_front_of_surface(dataset, mesh.vertices, _carve_views(views, config), *depth_maps, tol=tol,
-                                       min_views=config.depth_carve_min_views, window=config.depth_carve_window)
+        inside &= ~depth_carved(dataset, mesh.vertices, _carve_views(views, config), depth_maps, config, tol=tol)
     if inside.all() or not inside.any():
         return np.full(V, -config.phi_inside if inside.all() else config.phi_inside)
     E = mesh.edges().astype(np.int64)
@@ -224,7 +249,8 @@ def init_model_from_surfels(gaussians_ply, dataset, tet_config, config: Topology
     say(f"initial tet mesh: {mesh.num_tets} tets, {mesh.num_vertices} vertices", progress)
     maps = None
     if config.phi_init == "depth_hull":
-        maps = surfel_depth_maps(gaussians_ply, dataset, _carve_views(dataset.train_idx, config), device=device)
+        maps = surfel_depth_maps(gaussians_ply, dataset, _carve_views(dataset.train_idx, config), device=device,
+                                 config=config)
     return init_model(mesh, dataset, dataset.train_idx, config, seed=seed, device=device, depth_maps=maps)
 
 
