@@ -451,7 +451,8 @@ class TopologyConfig:
             carved the mug's cavity into a second tunnel: its stage 0 put the cavity floor
             at 2.0 instead of 2.49 from the top view.
         hull: how the mask-consistent region trusts the masks (:class:`HullTolerance`).
-        depth_carve_views: at most this many training views carve by depth (every k-th).
+        depth_carve_views: every k-th training view carves by depth, k = max(1, training views
+            // this): fewer than twice this many views (54 of the quality suite's 108).
         depth_carve_tol: a vertex is carved when it lies this many mean edge lengths in front
             of the rendered surface (margin against depth noise). Since stage 0 reads the
             normal maps its depth is good enough for half an edge: quality suite, whole fast
