@@ -205,9 +205,11 @@ class _Run:
 
     def tet_init(self):
         with self.state.timed("tet_init"):
+            # The depth carve's maps are made once: the field's start and the prunes' evidence share them.
+            maps = self._evidence().maps() if self.cfg.topology.phi_init == "depth_hull" else None
             self.model = init_model_from_surfels(self.out / "stage0" / "gaussians.ply", self.ds, self.cfg.tet_init,
                                                  self.cfg.topology, seed=self.cfg.seed, device=self.device,
-                                                 progress=self.progress, pieces=self.pieces)
+                                                 progress=self.progress, pieces=self.pieces, depth_maps=maps)
         self.state.tets_initial, self.state.vertices_initial = self.model.num_tets, self.model.num_vertices
 
     def _rebuild_optimizers(self, saved: dict | None = None, *, learn_scales: bool):
@@ -233,15 +235,19 @@ class _Run:
         self.losses.flush()
         self.bars.close("topology", "gaussian")
 
-    def on_prune(self, ev: Prune):
-        if self.cfg.topology.uses_evidence and self.evidence is None:
+    def _evidence(self) -> EmptyEvidence:
+        if self.evidence is None:
             self.evidence = EmptyEvidence(self.out / "stage0" / "gaussians.ply", self.ds, self.cfg.topology,
                                           device=self.device)
+        return self.evidence
+
+    def on_prune(self, ev: Prune):
+        evidence = self._evidence() if self.cfg.topology.uses_evidence else None
         t0 = time.perf_counter()
         mesh = self.model.mesh()
-        outside, in_front = self.evidence.parts(mesh) if self.evidence else (None, None)
+        outside, in_front = evidence.parts(mesh) if evidence else (None, None)
         info = prune(self.model, self.cfg.topology, evidence=None if outside is None else outside | in_front,
-                     outside=outside, genus_bound=(lambda: self.evidence.hull_genus(mesh)) if self.evidence else None)
+                     outside=outside, genus_bound=(lambda: evidence.hull_genus(mesh)) if evidence else None)
         info["seconds"] = time.perf_counter() - t0  # the evidence and the guards, before any refinement
         if self.cfg.schedule.prune_at.index(ev.iteration) == self.cfg.topology.refine_at_prune:
             refined = refine_near_surface(self.model, self.cfg.topology, self.ds)

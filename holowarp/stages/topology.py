@@ -109,9 +109,10 @@ def depth_carved(dataset, points, views, depth_maps, config: TopologyConfig, *, 
 class EmptyEvidence:
     """Which tets some training view shows to be empty space: their centroid projects outside
     a silhouette (outside the visual hull), or lies in front of the stage-0 surfels' surface
-    in ``depth_carve_min_views`` views (the prune's topology guards). The surfels' depth maps
-    are rendered once, on first use; a run without stage-0 surfels (a checkpoint made without
-    stage 0) has the silhouettes' evidence only."""
+    in enough views (:func:`depth_carved`; the prune's topology guards). The surfels' depth
+    maps (:meth:`maps`) are rendered and corrected once, on first use, and the pipeline hands
+    the same maps to the vertex field's start (:func:`init_model_from_surfels`); a run without
+    stage-0 surfels (a checkpoint made without stage 0) has the silhouettes' evidence only."""
 
     def __init__(self, gaussians_ply, dataset, config: TopologyConfig, *, device="cpu"):
         self.ply, self.ds, self.cfg, self.device = gaussians_ply, dataset, config, device
@@ -135,22 +136,28 @@ class EmptyEvidence:
         outside, in_front = self.parts(mesh)
         return outside | in_front
 
+    def maps(self):
+        """:func:`surfel_depth_maps` of the carve views (computed on the first call and kept),
+        or None without stage-0 surfels."""
+        from pathlib import Path
+
+        if self._maps is None and Path(self.ply).is_file():
+            self._maps = surfel_depth_maps(self.ply, self.ds, self.views, device=self.device, config=self.cfg)
+        return self._maps
+
     def parts(self, mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
         """The evidence by its source, two (M,) bool: ``outside`` (the centroid projects
         outside some training silhouette: exact where the masks are) and ``in_front`` (in
         front of the stage-0 surface in enough views: as good as the surfels' depth; all
         False without stage-0 surfels)."""
-        from pathlib import Path
-
-        if self._maps is None and Path(self.ply).is_file():
-            self._maps = surfel_depth_maps(self.ply, self.ds, self.views, device=self.device, config=self.cfg)
+        maps = self.maps()
         c = mesh.vertices[mesh.tets].mean(axis=1)
         outside = ~inside_hull(self.ds, c, self.ds.train_idx, device=self.device)
-        if self._maps is None:
+        if maps is None:
             return outside, np.zeros_like(outside)
         E = mesh.edges()
         tol = self.cfg.depth_carve_tol * float(np.linalg.norm(mesh.vertices[E[:, 0]] - mesh.vertices[E[:, 1]], axis=1).mean())
-        return outside, depth_carved(self.ds, c, self.views, self._maps, self.cfg, tol=tol)
+        return outside, depth_carved(self.ds, c, self.views, maps, self.cfg, tol=tol)
 
 
 def _carve_views(views, config: TopologyConfig) -> np.ndarray:
@@ -232,11 +239,13 @@ def init_model(mesh: TetMesh, dataset, views, config: TopologyConfig, *, seed: i
 
 
 def init_model_from_surfels(gaussians_ply, dataset, tet_config, config: TopologyConfig, *, seed: int = 0,
-                            device="cpu", progress: bool = True, pieces=None) -> TetGaussians:
+                            device="cpu", progress: bool = True, pieces=None, depth_maps=None) -> TetGaussians:
     """§4 then the start of §5: the scaled convex hull of the stage-0 surfels in
     ``gaussians_ply``, tetrahedralised with fTetWild (:func:`holowarp.stages.tet_init.initial_tetmesh`;
     ``pieces``: a scene's objects' bounding boxes, each meshed at its own edge length),
-    and its model (:func:`init_model`) on the training views."""
+    and its model (:func:`init_model`) on the training views. ``depth_maps``: the carve's
+    :func:`surfel_depth_maps` when the caller has them (:meth:`EmptyEvidence.maps`), else
+    they are made here (with ``phi_init`` "depth_hull")."""
     from holowarp.gaussians import load_gaussians_ply
     from holowarp.progress import say
     from holowarp.stages.tet_init import initial_tetmesh
@@ -247,8 +256,8 @@ def init_model_from_surfels(gaussians_ply, dataset, tet_config, config: Topology
     g = load_gaussians_ply(gaussians_ply)
     mesh = initial_tetmesh(g["means"], g["opacities"], tet_config, pieces=pieces, seed=seed)
     say(f"initial tet mesh: {mesh.num_tets} tets, {mesh.num_vertices} vertices", progress)
-    maps = None
-    if config.phi_init == "depth_hull":
+    maps = depth_maps
+    if maps is None and config.phi_init == "depth_hull":
         maps = surfel_depth_maps(gaussians_ply, dataset, _carve_views(dataset.train_idx, config), device=device,
                                  config=config)
     return init_model(mesh, dataset, dataset.train_idx, config, seed=seed, device=device, depth_maps=maps)
