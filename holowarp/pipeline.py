@@ -241,13 +241,30 @@ class _Run:
                                           device=self.device)
         return self.evidence
 
+    def _depth_maps(self) -> dict | None:
+        """The depth carve's maps by view, ``{view: (stage-0 depth, alpha, corrected)}``, for the
+        mesh blocks' depth pull; None without normal-corrected maps or with the pull off."""
+        if not self.cfg.geometry.depth_pull > 0:
+            return None
+        ev = self._evidence()
+        maps = ev.maps()
+        if maps is None or maps[2] is None:
+            return None
+        return {int(v): (maps[0][j], maps[1][j], maps[2][j]) for j, v in enumerate(ev.views)}
+
     def on_prune(self, ev: Prune):
         evidence = self._evidence() if self.cfg.topology.uses_evidence else None
         t0 = time.perf_counter()
         mesh = self.model.mesh()
         outside, in_front = evidence.parts(mesh) if evidence else (None, None)
+        # The depth evidence prunes on its own only where normal maps made it good (TopologyConfig.prune_in_front).
+        forced, t = None, self.cfg.topology
+        if t.prune_in_front and self.ds.normals is not None and evidence is not None:
+            forced = in_front if t.prune_in_front_tol == t.depth_carve_tol else evidence.in_front(
+                mesh, tol=t.prune_in_front_tol)
         info = prune(self.model, self.cfg.topology, evidence=None if outside is None else outside | in_front,
-                     outside=outside, genus_bound=(lambda: evidence.hull_genus(mesh)) if evidence else None)
+                     outside=outside, genus_bound=(lambda: evidence.hull_genus(mesh)) if evidence else None,
+                     in_front=forced)
         info["seconds"] = time.perf_counter() - t0  # the evidence and the guards, before any refinement
         if self.cfg.schedule.prune_at.index(ev.iteration) == self.cfg.topology.refine_at_prune:
             refined = refine_near_surface(self.model, self.cfg.topology, self.ds)
@@ -273,6 +290,7 @@ class _Run:
         with st.timed("geometry", sch.mesh_block_iters - (st.block.step if st.block else 0)):
             summary = run_geometry_block(
                 self.model, self.ds, self.ds.train_idx, self.cfg.geometry, block_iters=sch.mesh_block_iters,
+                depth_maps=self._depth_maps(),
                 total_mesh_iters=sch.total_mesh_iters, state=gstate, at=ev.iteration, seed=self.cfg.seed,
                 resume=st.block, progress=self.bars.get("geometry", sch.total_mesh_iters, st.mesh_iter),
                 checkpoint=block_ckpt, checkpoint_every=self.cfg.checkpoint_every,

@@ -76,11 +76,13 @@ def test_fast_preset_scales_every_count_by_one_factor_and_keeps_the_order():
     assert fast.topology.refine_at_prune == len(fs.prune_at) - 1
     assert fast.geometry.lr_start == pytest.approx(paper.geometry.lr_start / FAST_FACTOR)
     # ... keeps L_HC at half its starting weight (GeometryConfig.hc_floor; paper: lam(t) alone) and
-    # reads the normal maps in its mesh blocks (GeometryConfig.w_prior; paper: no such term).
-    assert replace(fast.geometry, hc_floor=0.0, w_prior=0.0, lr_start=paper.geometry.lr_start,
+    # reads the normal maps in its mesh blocks (GeometryConfig.w_prior; paper: no such term)
+    # and pulls lids over cavities down to their normal-corrected depth (depth_pull; paper: none).
+    assert replace(fast.geometry, hc_floor=0.0, w_prior=0.0, depth_pull=0.0, lr_start=paper.geometry.lr_start,
                    lr_end=paper.geometry.lr_end) == paper.geometry
     assert paper.geometry.hc_floor == 0.0 and fast.geometry.hc_floor == 0.5
     assert paper.geometry.w_prior == 0.0 and fast.geometry.w_prior == 2.0
+    assert paper.geometry.depth_pull == 0.0 and fast.geometry.depth_pull == 0.5
     with pytest.raises(ValueError, match="preset"):
         preset("slow")
 
@@ -425,7 +427,7 @@ def test_prune_removes_low_alpha_tets_and_keeps_the_largest_piece():
 # The prune without its topology guards and pit rule: the tests below carve box meshes in
 # blocks whose inner corners the pit rule would keep (tests/..._fills_the_pits_it_would_dig).
 NO_PITS = TopologyConfig(pit_solid_fraction=1.0)
-PLAIN = replace(NO_PITS, genus_guard=False, split_guard=None, restore_elsewhere=False)
+PLAIN = replace(NO_PITS, genus_guard=False, split_guard=None, restore_elsewhere=False, prune_in_front=False)
 
 
 def _model_with_low(mesh, low) -> TetGaussians:
@@ -590,6 +592,99 @@ def test_normal_prior_in_geometry_blocks_matches_a_numpy_cosine_and_is_logged(sp
     assert off.normals is None and "prior" not in off.step(0, 0, seed=1)
 
 
+def test_depth_pull_moves_vertices_in_front_of_a_lid_back_along_their_rays(sphere_scene, rng):
+    """A view's corrected depth lies behind its stage-0 depth on a patch (a lid over a
+    cavity): the vertices that view sees in front of the corrected depth (minus the margin)
+    move back along their own rays by ``depth_pull`` of the gap, capped at ``max_step``
+    mean edges; the others, and every vertex where the two maps agree, stay."""
+    from holowarp.camera import project_points
+    from holowarp.stages.geometry import GeometryBlock
+
+    ds, _ = sphere_scene
+    view = int(ds.train_idx[0])
+    model = _grid_carved_model(ds, 8)
+    x0 = model.vertices.detach().clone().double().numpy()
+    uv, z = project_points(x0, ds.viewmats[view], ds.K[view])
+    H, W = ds.height, ds.width
+    d0 = np.full((H, W), np.quantile(z, 0.2), np.float32)  # stage-0 surface well in front
+    dc = d0 + 0.3 * float(np.ptp(z))  # the corrected one behind it on the left half only
+    dc[:, W // 2:] = d0[:, W // 2:]
+    alpha = np.ones((H, W), np.float32)
+    cfg = GeometryConfig(depth_pull=0.5, depth_pull_margin=0.1, max_step=100.0)
+    blk = GeometryBlock(model, ds, ds.train_idx, cfg, block_iters=4, total_mesh_iters=4,
+                        depth_maps={view: (d0, alpha, dc)})
+    x = model.vertices.detach().clone()
+    moved = blk.pull_to_depth(x, view)
+    target = float(dc[0, 0]) - 0.1 * blk.mean_edge
+    col, row = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+    inside = (col >= 1) & (col < W // 2 - 1) & (row >= 1) & (row < H - 1)  # away from the map's edges
+    expect = inside & (z < target)
+    assert moved >= int(expect.sum()) > 10
+    x1 = x.double().numpy()
+    uv1, z1 = project_points(x1, ds.viewmats[view], ds.K[view])
+    np.testing.assert_allclose(z1[expect], z[expect] + 0.5 * (target - z[expect]), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(uv1[expect], uv[expect], atol=1e-3)  # along the ray: same pixel
+    right = (col >= W // 2 + 1) & (col < W) & (row >= 0) & (row < H)
+    np.testing.assert_array_equal(x1[right], x0[right])
+    np.testing.assert_array_equal(x1[~expect & ~inside & (col >= W // 2 + 1)], x0[~expect & ~inside & (col >= W // 2 + 1)])
+    # The cap: at most max_step mean edges a call.
+    capped = GeometryBlock(model, ds, ds.train_idx, replace(cfg, max_step=0.01), block_iters=4, total_mesh_iters=4,
+                           depth_maps={view: (d0, alpha, dc)})
+    xc = model.vertices.detach().clone()
+    capped.pull_to_depth(xc, view)
+    step = np.linalg.norm(xc.double().numpy() - x0, axis=1)
+    assert step.max() <= 0.01 * capped.mean_edge * 1.0001 + 1e-7 and step.max() > 0
+    assert GeometryBlock(model, ds, ds.train_idx, cfg, block_iters=4, total_mesh_iters=4).pull_to_depth(x, view) == 0
+    # Inside a step, a pull that would squeeze a tet below depth_pull_min_volume of its rest
+    # volume is put back: with a floor of 0.99 no tet loses more than 1%, with 0 some do.
+    from holowarp.stages.geometry import signed_volumes_t
+
+    shrunk = {}
+    for floor in (0.99, 0.0):
+        m = _grid_carved_model(ds, 8)
+        rest = signed_volumes_t(m.vertices.detach(), m.tets)
+        maps = {int(v): (d0, alpha, dc) for v in ds.train_idx}
+        blk = GeometryBlock(m, ds, ds.train_idx, replace(cfg, depth_pull_min_volume=floor, max_step=0.05, lr_start=0.0,
+                                                         lr_end=0.0), block_iters=3, total_mesh_iters=3, depth_maps=maps)
+        for k in range(3):
+            blk.step(k, k, seed=0)
+        vol = signed_volumes_t(m.vertices.detach(), m.tets)
+        shrunk[floor] = int((vol < 0.99 * rest).sum())
+        assert int((vol <= 0).sum()) == 0
+    assert shrunk[0.99] == 0 and shrunk[0.0] > 0
+
+
+def test_min_dihedral_matches_the_tet_mesh_and_the_sliver_guard_puts_back_the_moves_that_flatten(rng):
+    """``min_dihedral_deg`` against :meth:`TetMesh.dihedral_angles` on random tets (float64) and
+    a regular tet's arccos(1/3); ``revert_sliver_moves`` puts back exactly the moved vertices of
+    the tets a move flattened below the threshold, and leaves a move that keeps them fat."""
+    from holowarp.stages.geometry import min_dihedral_deg, revert_sliver_moves
+
+    mesh = box_tetmesh((3, 3, 3))
+    V = mesh.vertices + rng.uniform(-0.05, 0.05, mesh.vertices.shape)
+    ref = TetMesh(V, mesh.tets).dihedral_angles()
+    ref = np.degrees(ref) if ref.max() < 7 else ref
+    got = min_dihedral_deg(torch.tensor(V), torch.tensor(mesh.tets)).numpy()
+    np.testing.assert_allclose(got, ref.min(axis=1), atol=1e-8)
+    reg = torch.tensor([[1.0, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=torch.float64)
+    assert float(min_dihedral_deg(reg, torch.tensor([[0, 1, 2, 3]]))[0]) == pytest.approx(np.degrees(np.arccos(1 / 3)))
+    x_old = torch.tensor(V)
+    T = torch.tensor(mesh.tets)
+    inner = int(np.flatnonzero((np.abs(mesh.vertices - 0.5) < 0.2).all(axis=1))[0])  # an interior vertex
+    far = int(np.argmax(np.linalg.norm(mesh.vertices - mesh.vertices[inner], axis=1)))
+    tet = mesh.tets[np.flatnonzero((mesh.tets == inner).any(axis=1))[0]]
+    toward = torch.tensor(V[tet[tet != inner]].mean(axis=0) - V[inner])  # to the opposite face's centre
+    for shift, expect in ((0.9, 1), (0.02, 0)):
+        x_new = x_old.clone()
+        x_new[inner] += shift * toward
+        x_new[far] += 0.001
+        before = min_dihedral_deg(x_new, T)
+        back = revert_sliver_moves(x_new, x_old, T, min_deg=10.0)
+        assert back == expect and bool(before.min() < 10.0) == bool(expect)
+        assert torch.equal(x_new[inner], x_old[inner]) == bool(expect) and not torch.equal(x_new[far], x_old[far])
+        assert float(min_dihedral_deg(x_new, T).min()) >= min(10.0, float(min_dihedral_deg(x_old, T).min())) - 1e-9
+
+
 def test_hc_floor_keeps_the_hc_term_in_the_loss_where_lam_has_decayed_to_zero(sphere_scene):
     from holowarp.stages.geometry import GeometryBlock
 
@@ -640,6 +735,31 @@ def test_prune_never_opens_sealed_cavities_nor_leaves_a_non_manifold_boundary(rn
     assert info["low_alpha"] == int(low.sum())
     assert (info["pruned"] + info["kept_cavity"] + info["kept_dents"] + info["kept_pits"]
             + info["restored_for_manifold"] + info["filled_sealed"]) == info["low_alpha"]
+
+
+def test_prune_takes_opaque_tets_the_depth_evidence_shows_in_front(rng):
+    """A lid of opaque tets over a low-alpha pocket (what stage 0 leaves over a cavity the
+    silhouettes miss): the plain prune keeps the pocket as sealed and the lid for its
+    opacity; with ``in_front`` (the tets the depth carve shows in front of the surface) both
+    go, whatever their opacity, and the rest of the mesh is untouched."""
+    mesh = box_tetmesh((6, 6, 6))
+    c = mesh.vertices[mesh.tets].mean(axis=1)
+    cell = np.floor(c * 6).astype(int)  # the tets of whole cells: a 2x2 column, two cells deep under the lid
+    column = np.isin(cell[:, 0], (2, 3)) & np.isin(cell[:, 1], (2, 3))
+    pocket, lid = column & np.isin(cell[:, 2], (3, 4)), column & (cell[:, 2] == 5)
+    model = _model_with_low(mesh, pocket)
+    info = prune(model, PLAIN)
+    assert info["pruned"] == 0 and info["kept_cavity"] == int(pocket.sum())
+    for front in (pocket | lid, lid):  # the lid alone opens the pocket below it
+        model = _model_with_low(mesh, pocket)
+        info = prune(model, PLAIN, in_front=front)
+        assert info["in_front"] == int(lid.sum())
+        assert info["pruned"] == int((pocket | lid).sum()) and model.num_tets == mesh.num_tets - info["pruned"]
+        out = model.mesh()
+        assert out.manifold()["manifold"] and out.num_components() == 1 and out.genus() == 0
+    # Opacity alone still prunes where no evidence is given: the same as before.
+    model = _model_with_low(mesh, pocket | lid)
+    assert prune(model, PLAIN)["pruned"] == int((pocket | lid).sum())
 
 
 def test_prune_swaps_restored_tets_outside_the_silhouettes_for_others(rng):
@@ -983,6 +1103,15 @@ def test_pit_settings_out_of_range_are_refused_by_name(bad):
 def test_depth_normals_settings_out_of_range_are_refused_by_name(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         TopologyConfig(**bad)
+
+
+@pytest.mark.parametrize("cls, bad", [(TopologyConfig, {"prune_in_front_tol": -0.5}),
+                                      (TopologyConfig, {"prune_in_front_tol": float("inf")}),
+                                      (GeometryConfig, {"depth_pull": 1.5}), (GeometryConfig, {"depth_pull": -0.1}),
+                                      (GeometryConfig, {"depth_pull_margin": float("nan")})])
+def test_depth_evidence_settings_out_of_range_are_refused_by_name(cls, bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        cls(**bad)
 
 
 def test_restore_elsewhere_swaps_seen_restored_tets_for_spare_ones_where_the_topology_allows(rng):

@@ -24,8 +24,12 @@ minimises
   block and needs the smoothing there).
 
 Vertices are optimised with :class:`holowarp.optim.UniformAdam` (per-step displacement cap)
-and the cosine lr 2e-4 -> 1e-4. Orientation is guaranteed, not only penalised: after each
-step, vertices of tets that the step inverted or shrank below ``min_volume_fraction`` of
+and the cosine lr 2e-4 -> 1e-4. With :attr:`GeometryConfig.depth_pull` and normal maps in the
+dataset, each step then moves the vertices its view sees in front of the normal-corrected
+depth of a cavity (:meth:`GeometryBlock.pull_to_depth`) back along their rays: no image term
+pushes a lid down into a cavity the silhouettes miss, and none can, since the lid shows the
+right normals and shading. Orientation is guaranteed, not only penalised: after each
+step (and pull), vertices of tets that the step inverted or shrank below ``min_volume_fraction`` of
 their block-start volume are put back (repeated until no tet newly crosses that floor), so
 no step leaves more inverted tets than it found and no slivers form.
 
@@ -46,7 +50,8 @@ from holowarp.config import GeometryConfig
 from holowarp.progress import LossBuffer
 from holowarp.tetgs import TetGaussians
 
-__all__ = ["BlockResume", "GeometryBlock", "GeometryState", "mesh_lambda", "run_geometry_block", "signed_volumes_t", "revert_inverting_moves"]
+__all__ = ["BlockResume", "GeometryBlock", "GeometryState", "mesh_lambda", "min_dihedral_deg", "run_geometry_block",
+           "signed_volumes_t", "revert_inverting_moves", "revert_sliver_moves"]
 
 
 def mesh_lambda(t: int, total: int) -> float:
@@ -94,6 +99,50 @@ def revert_inverting_moves(
                                       cache=FRESH if cache is None else cache)
 
 
+def min_dihedral_deg(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
+    """(M,) smallest dihedral angle of each tet, degrees. The angle at the edge shared by the
+    faces opposite corners c and d is pi - angle(n_c, n_d) for outward face normals n."""
+    P = x[tets]  # (M, 4, 3)
+    normals = []
+    for i in range(4):
+        a, b, c = (P[:, j] for j in range(4) if j != i)
+        n = torch.linalg.cross(b - a, c - a)
+        n = n * torch.sign(((a - P[:, i]) * n).sum(dim=1, keepdim=True))  # away from the opposite corner
+        normals.append(n / n.norm(dim=1, keepdim=True).clamp_min(1e-30))
+    cos = torch.stack([-(normals[i] * normals[j]).sum(dim=1) for i in range(4) for j in range(i + 1, 4)], dim=1)
+    return torch.rad2deg(torch.arccos(cos.max(dim=1).values.clamp(-1.0, 1.0)))
+
+
+def revert_sliver_moves(x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Tensor, *, min_deg: float,
+                        max_rounds: int = 5) -> int:
+    """Put back, in place, the moved vertices (rows where ``x_new`` differs from ``x_old``) of
+    every tet whose smallest dihedral angle the move took below ``min_deg`` degrees, or
+    lowered further where it already was; repeated, as putting one tet back can bend a
+    neighbour, then everything put back after ``max_rounds``. Returns the vertices put back."""
+    with torch.no_grad():
+        moved = (x_new != x_old).any(dim=1)
+        if not moved.any() or min_deg <= 0:
+            return 0
+        back = 0
+        for _ in range(max_rounds):
+            sel = moved[tets].any(dim=1)
+            if not sel.any():
+                return back
+            t = tets[sel]
+            old, new = min_dihedral_deg(x_old, t), min_dihedral_deg(x_new, t)
+            bad = (new < min_deg) & (new < old)
+            if not bad.any():
+                return back
+            v = torch.unique(t[bad].reshape(-1))
+            v = v[moved[v]]
+            x_new[v] = x_old[v]
+            moved[v] = False
+            back += int(v.numel())
+        back += int(moved.sum())
+        x_new.copy_(x_old)
+        return back
+
+
 @dataclass
 class GeometryState:
     """What persists across blocks (and checkpoints): the global mesh-iteration counter."""
@@ -124,10 +173,14 @@ class GeometryBlock:
         rest_vertices: (V, 3) positions at the block's start (a resumed block passes the
             saved ones; default: the model's current positions).
         optimizer_state: the UniformAdam state to continue from (resume).
+        depth_maps: ``{view: (stage-0 depth, alpha, corrected depth)}`` (H, W) maps of the
+            depth carve (:func:`holowarp.stages.topology.surfel_depth_maps`) for the depth
+            pull (:meth:`pull_to_depth`); None, or ``config.depth_pull`` 0, for none.
     """
 
     def __init__(self, model: TetGaussians, dataset, views, config: GeometryConfig, *, block_iters: int,
-                 total_mesh_iters: int, rest_vertices=None, optimizer_state: dict | None = None):
+                 total_mesh_iters: int, rest_vertices=None, optimizer_state: dict | None = None,
+                 depth_maps: dict | None = None):
         from holowarp.energies import TetEnergies
         from holowarp.ops._warp import StepCache
         from holowarp.ops.tet_energy import vertex_tets
@@ -163,6 +216,67 @@ class GeometryBlock:
         # (about 20 launches a step; issue 17's loop overhead).
         self.step_cache = StepCache()
         self.reverted = 0
+        self.depth_maps = depth_maps if config.depth_pull > 0 else None
+        self.targets: dict = {}
+        self.pulled = 0
+        if self.depth_maps is not None:
+            # A pull squeezes the tets under a lid; its own, higher floor keeps slivers from forming there.
+            with torch.no_grad():
+                self.pull_floor = config.depth_pull_min_volume * signed_volumes_t(self.rest, model.tets).clamp_min(0)
+            self.pull_cache = StepCache()
+
+    def depth_target(self, view: int):
+        """(H, W) float32 tensor: the camera depth behind which the depth pull puts every
+        vertex seen at that pixel, NaN where it does not act; None without a map for ``view``.
+
+        From the depth carve's maps of ``view`` (stage-0 depth, alpha, normal-corrected
+        depth): the corrected depth where it lies behind the stage-0 surface by more than the
+        pull's margin (a lid stage 0 left over a cavity, :func:`holowarp.carve.depth_from_normals`),
+        each depth the nearest of its 3x3 neighbourhood and every pixel of it opaque, as the
+        carve takes them (a rim's vertices next to a deeper floor are not pulled)."""
+        if self.depth_maps is None or view not in self.depth_maps:
+            return None
+        if view not in self.targets:
+            from scipy.ndimage import minimum_filter
+
+            d0, a, dc = (np.asarray(m, dtype=np.float64) for m in self.depth_maps[view])
+            opaque = minimum_filter((a > 0.5).astype(np.uint8), size=3) > 0
+            near0 = minimum_filter(np.where(opaque, d0, np.inf), size=3)
+            nearc = minimum_filter(np.where(opaque & np.isfinite(dc), dc, np.inf), size=3)
+            margin = self.cfg.depth_pull_margin * self.mean_edge
+            lid = opaque & np.isfinite(nearc) & (nearc > near0 + margin)
+            self.targets[view] = torch.tensor(np.where(lid, nearc - margin, np.nan), dtype=torch.float32,
+                                              device=self.x.device)
+        return self.targets[view]
+
+    def pull_to_depth(self, x: torch.Tensor, view: int) -> int:
+        """Move, in place, every vertex of ``x`` (V, 3) that ``view`` sees in front of its
+        :meth:`depth_target` back along its view ray by ``depth_pull`` of the gap (at most
+        ``max_step`` mean edges); returns how many moved. :meth:`step` then puts back the
+        moves that take a tet below ``depth_pull_min_volume`` of its block-start volume."""
+        tgt = self.depth_target(view)
+        if tgt is None:
+            return 0
+        ds = self.dataset
+        vm = torch.as_tensor(ds.viewmats[view], dtype=x.dtype, device=x.device)
+        K = torch.as_tensor(ds.K[view], dtype=x.dtype, device=x.device)
+        R, t = vm[:3, :3], vm[:3, 3]
+        with torch.no_grad():
+            pc = x @ R.T + t
+            z = pc[:, 2]
+            zs = torch.where(z > 1e-6, z, torch.ones_like(z))
+            u = K[0, 0] * pc[:, 0] / zs + K[0, 1] * pc[:, 1] / zs + K[0, 2]
+            v = K[1, 1] * pc[:, 1] / zs + K[1, 2]
+            col, row = torch.floor(u).long(), torch.floor(v).long()
+            H, W = tgt.shape
+            ok = (z > 1e-6) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
+            T = tgt[row.clamp(0, H - 1), col.clamp(0, W - 1)]
+            gap = torch.where(ok & torch.isfinite(T), T - z, torch.zeros_like(z)).clamp_min(0)
+            ray = x - (-R.T @ t)  # camera centre to vertex: a depth change dz moves it by |ray| dz / z
+            cap = self.cfg.max_step * self.mean_edge * zs / ray.norm(dim=1).clamp_min(1e-12)
+            delta = torch.minimum(self.cfg.depth_pull * gap, cap)
+            x += ray * (delta / zs)[:, None]
+            return int((delta > 0).sum())
 
     def surfel_normals(self, view: int):
         """The frozen surfels' rendered normal (H, W, 3, unit) and coverage (H, W) in ``view``,
@@ -227,6 +341,13 @@ class GeometryBlock:
         loss.backward()
         x_old = c.buffer("step.x_old", x.shape, x.dtype, x.device).copy_(x.detach())
         self.opt.step()
+        if self.depth_maps is not None and self.depth_target(view) is not None:
+            x_mid = c.buffer("step.x_mid", x.shape, x.dtype, x.device).copy_(x.detach())
+            if self.pull_to_depth(x.data, view):
+                revert_inverting_moves(x.data, x_mid, self.tets32, floor=self.pull_floor, incidence=self.incidence,
+                                       cache=self.pull_cache)
+                revert_sliver_moves(x.data, x_mid, self.model.tets, min_deg=self.cfg.depth_pull_min_dihedral)
+                self.pulled += int((x.data != x_mid).any(dim=1).sum())
         self.reverted = self.reverted + revert_inverting_moves(x.data, x_old, self.tets32, floor=self.floor,
                                                                  incidence=self.incidence, cache=c)
         terms = {"loss": loss, "mask": l_mask, "norm": l_norm, "hc": l_hc, "w": l_w, "inv": l_inv}
@@ -257,6 +378,7 @@ def run_geometry_block(
     checkpoint=None,
     checkpoint_every: int = 0,
     log=None,
+    depth_maps: dict | None = None,
 ) -> dict:
     """Run one mesh-only block of ``block_iters`` steps, inserted at main iteration ``at``.
 
@@ -270,15 +392,18 @@ def run_geometry_block(
         checkpoint: callable(:class:`BlockResume`) saving a resumable state; called every
             ``checkpoint_every`` steps.
         log: optional callable(record) given each step's ``{"mesh_iter": t, **losses}``.
+        depth_maps: the depth pull's maps by view (see :class:`GeometryBlock`).
 
     Returns:
-        summary dict: ``steps``, ``seconds``, ``reverted_vertices``, ``final`` losses,
+        summary dict: ``steps``, ``seconds``, ``reverted_vertices``, ``pulled_vertices`` (vertex
+        moves of the depth pull, summed over the steps), ``final`` losses,
         ``inverted`` (tets with volume <= 0 at the end), ``mean_edge``.
     """
     if resume is not None and resume.at != at:
         resume = None
     blk = GeometryBlock(model, dataset, views, config, block_iters=block_iters, total_mesh_iters=total_mesh_iters,
-                        rest_vertices=resume.rest if resume else None, optimizer_state=resume.opt if resume else None)
+                        rest_vertices=resume.rest if resume else None, optimizer_state=resume.opt if resume else None,
+                        depth_maps=depth_maps)
     start = resume.step if resume else 0
     t0 = time.perf_counter()
     shown = {}
@@ -305,6 +430,7 @@ def run_geometry_block(
         "steps": block_iters - start,
         "seconds": time.perf_counter() - t0,
         "reverted_vertices": int(blk.reverted),
+        "pulled_vertices": int(blk.pulled),
         "final": {k: v for k, v in shown.items() if k != "mesh_iter"},
         "inverted": blk.finish(),
         "mean_edge": blk.mean_edge,

@@ -148,16 +148,22 @@ class EmptyEvidence:
     def parts(self, mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
         """The evidence by its source, two (M,) bool: ``outside`` (the centroid projects
         outside some training silhouette: exact where the masks are) and ``in_front`` (in
-        front of the stage-0 surface in enough views: as good as the surfels' depth; all
-        False without stage-0 surfels)."""
-        maps = self.maps()
+        front of the stage-0 surface in enough views, :meth:`in_front`)."""
         c = mesh.vertices[mesh.tets].mean(axis=1)
-        outside = ~inside_hull(self.ds, c, self.ds.train_idx, device=self.device)
+        return ~inside_hull(self.ds, c, self.ds.train_idx, device=self.device), self.in_front(mesh)
+
+    def in_front(self, mesh: TetMesh, *, tol: float | None = None) -> np.ndarray:
+        """(M,) bool: the tets whose centroid lies in front of the stage-0 surface (or of its
+        normal-corrected depth) in enough views by more than ``tol`` mean edge lengths of
+        ``mesh`` (default ``depth_carve_tol``; :func:`depth_carved`): as good as the surfels'
+        depth; all False without stage-0 surfels."""
+        maps = self.maps()
         if maps is None:
-            return outside, np.zeros_like(outside)
+            return np.zeros(mesh.num_tets, dtype=bool)
         E = mesh.edges()
-        tol = self.cfg.depth_carve_tol * float(np.linalg.norm(mesh.vertices[E[:, 0]] - mesh.vertices[E[:, 1]], axis=1).mean())
-        return outside, depth_carved(self.ds, c, self.views, maps, self.cfg, tol=tol)
+        factor = self.cfg.depth_carve_tol if tol is None else tol
+        tol = factor * float(np.linalg.norm(mesh.vertices[E[:, 0]] - mesh.vertices[E[:, 1]], axis=1).mean())
+        return depth_carved(self.ds, mesh.vertices[mesh.tets].mean(axis=1), self.views, maps, self.cfg, tol=tol)
 
 
 def _carve_views(views, config: TopologyConfig) -> np.ndarray:
@@ -460,7 +466,7 @@ _PRUNE_COUNTS = ("pruned", "kept_cavity", "kept_dents", "kept_pits", "restored_f
                  "raw_components", "raw_non_manifold", "tets_removed_by_component")
 
 
-def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, outside=None, genus_bound=None) -> dict:
+def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, outside=None, genus_bound=None, in_front=None) -> dict:
     """Delete tets with alpha < prune_alpha and the vertices no tet uses (method.md §5).
 
     Guards keep the result a simulation-ready solid whose topology follows the images
@@ -489,6 +495,8 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, outside
       ``config.split_guard`` of the kept tets), the prune is the second: every such blind
       tet stays, so topology follows the images, never the thickness of the tets (the
       later prunes still take blind tets wherever they leave the topology as it is);
+    - ``in_front`` (M,) bool tets (:meth:`EmptyEvidence.in_front`) are pruned whatever their
+      opacity, under the same guards (:attr:`TopologyConfig.prune_in_front`);
     - the genus guard never takes the genus above ``genus_bound`` (an int, or a callable
       giving it: the visual hull's genus, :func:`_guarded_by_evidence`).
 
@@ -498,8 +506,8 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, outside
     least that fraction of the kept tets stays.
 
     Returns:
-        dict: ``tets_before``, ``pruned`` (removed for low alpha), ``low_alpha``,
-        ``raw_components`` and ``raw_non_manifold`` (face-connected pieces and non-manifold
+        dict: ``tets_before``, ``pruned`` (removed), ``low_alpha``, ``in_front`` (the opaque
+        tets ``in_front`` adds, when given), ``raw_components`` and ``raw_non_manifold`` (face-connected pieces and non-manifold
         boundary edges + vertices the plain rule would have left, before the guards below),
         ``kept_cavity`` (low-alpha tets kept because sealed), ``kept_dents`` (low-alpha tets
         kept because three or more of their faces meet kept tets), ``kept_pits``,
@@ -509,12 +517,10 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, outside
         ``genus_before``, ``genus_after``, ``removed_components``, ``tets_removed_by_component``,
         ``tets_after``, ``emptied``, and with ``config.min_component`` ``kept_components``.
     """
-    with torch.no_grad():
-        alpha = model.opacities().cpu().numpy()
     mesh = model.mesh()
     M = model.num_tets
-    low = alpha < config.prune_alpha
-    info = {"tets_before": M, "low_alpha": int(low.sum()), "emptied": False}
+    info = {"tets_before": M, "low_alpha": 0, "emptied": False}
+    low = _prune_candidates(model, config, in_front, info)
     if low.all():
         return {**info, **dict.fromkeys(_PRUNE_COUNTS, 0), "emptied": True, "tets_after": M}
     adj = mesh.face_adjacency()
@@ -540,6 +546,19 @@ def prune(model: TetGaussians, config: TopologyConfig, *, evidence=None, outside
     if config.min_component is not None:
         info["kept_components"] = n_kept
     return info
+
+
+def _prune_candidates(model: TetGaussians, config: TopologyConfig, in_front, info: dict) -> np.ndarray:
+    """(M,) bool: the tets below ``prune_alpha``, and the ``in_front`` ones (None: none);
+    counted in ``info`` as ``low_alpha`` and ``in_front`` (the opaque ones it adds)."""
+    with torch.no_grad():
+        low = model.opacities().cpu().numpy() < config.prune_alpha
+    info["low_alpha"] = int(low.sum())
+    if in_front is not None:
+        in_front = np.asarray(in_front, dtype=bool)
+        info["in_front"] = int((in_front & ~low).sum())
+        low = low | in_front
+    return low
 
 
 def _raw_counts(mesh: TetMesh, drop: np.ndarray) -> dict:
@@ -738,8 +757,8 @@ def prune_message(info: dict, alpha: float) -> str:
     if info.get("emptied"):
         return (f"prune at iteration {info['iteration']}: every tet is below alpha {alpha}; "
                 "pruning would empty the mesh, so nothing was pruned")
-    msg = (f"prune at iteration {info['iteration']}: {info['pruned']} tets below alpha {alpha} removed, "
-           f"{info['tets_after']} remain")
+    why = f"below alpha {alpha}" + (f" or in front of the surface ({info['in_front']} opaque)" if info.get("in_front") else "")
+    msg = f"prune at iteration {info['iteration']}: {info['pruned']} tets {why} removed, {info['tets_after']} remain"
     if info.get("filled_sealed"):
         msg += f"; {info['filled_sealed']} tets put back where the guards had sealed a void"
     if info.get("removed_components"):
