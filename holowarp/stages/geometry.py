@@ -100,8 +100,9 @@ def revert_inverting_moves(
 
 
 def min_dihedral_deg(x: torch.Tensor, tets: torch.Tensor) -> torch.Tensor:
-    """(M,) smallest dihedral angle of each tet, degrees. The angle at the edge shared by the
-    faces opposite corners c and d is pi - angle(n_c, n_d) for outward face normals n."""
+    """(M,) smallest dihedral angle of each tet, degrees: :meth:`holowarp.tetmesh.TetMesh.dihedral_angles`
+    on the device, for a step's guard. The angle at the edge shared by the faces opposite
+    corners c and d is pi - angle(n_c, n_d) for outward face normals n."""
     P = x[tets]  # (M, 4, 3)
     normals = []
     for i in range(4):
@@ -262,12 +263,12 @@ class GeometryBlock:
         K = torch.as_tensor(ds.K[view], dtype=x.dtype, device=x.device)
         R, t = vm[:3, :3], vm[:3, 3]
         with torch.no_grad():
+            # holowarp.camera.project_points on the device (skew K[0, 1] included)
             pc = x @ R.T + t
             z = pc[:, 2]
             zs = torch.where(z > 1e-6, z, torch.ones_like(z))
-            u = K[0, 0] * pc[:, 0] / zs + K[0, 1] * pc[:, 1] / zs + K[0, 2]
-            v = K[1, 1] * pc[:, 1] / zs + K[1, 2]
-            col, row = torch.floor(u).long(), torch.floor(v).long()
+            uv = (pc[:, :2] / zs[:, None]) @ K[:2, :2].T + K[:2, 2]
+            col, row = torch.floor(uv[:, 0]).long(), torch.floor(uv[:, 1]).long()
             H, W = tgt.shape
             ok = (z > 1e-6) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
             T = tgt[row.clamp(0, H - 1), col.clamp(0, W - 1)]

@@ -160,10 +160,14 @@ class EmptyEvidence:
         maps = self.maps()
         if maps is None:
             return np.zeros(mesh.num_tets, dtype=bool)
-        E = mesh.edges()
-        factor = self.cfg.depth_carve_tol if tol is None else tol
-        tol = factor * float(np.linalg.norm(mesh.vertices[E[:, 0]] - mesh.vertices[E[:, 1]], axis=1).mean())
+        tol = _carve_tol(mesh, self.cfg.depth_carve_tol if tol is None else tol)
         return depth_carved(self.ds, mesh.vertices[mesh.tets].mean(axis=1), self.views, maps, self.cfg, tol=tol)
+
+
+def _carve_tol(mesh: TetMesh, factor: float) -> float:
+    """The depth carve's margin: ``factor`` mean edge lengths of ``mesh``."""
+    E = mesh.edges()
+    return factor * float(np.linalg.norm(mesh.vertices[E[:, 0]] - mesh.vertices[E[:, 1]], axis=1).mean())
 
 
 def _carve_views(views, config: TopologyConfig) -> np.ndarray:
@@ -186,9 +190,8 @@ def init_phi(mesh: TetMesh, dataset, views, config: TopologyConfig, *, depth_map
 
     inside = inside_hull(dataset, mesh.vertices, views, tolerance=config.hull)
     if config.phi_init == "depth_hull" and depth_maps is not None:
-        E0 = mesh.edges()
-        tol = config.depth_carve_tol * float(np.linalg.norm(mesh.vertices[E0[:, 0]] - mesh.vertices[E0[:, 1]], axis=1).mean())
-        inside &= ~depth_carved(dataset, mesh.vertices, _carve_views(views, config), depth_maps, config, tol=tol)
+        inside &= ~depth_carved(dataset, mesh.vertices, _carve_views(views, config), depth_maps, config,
+                                tol=_carve_tol(mesh, config.depth_carve_tol))
     if inside.all() or not inside.any():
         return np.full(V, -config.phi_inside if inside.all() else config.phi_inside)
     E = mesh.edges().astype(np.int64)
