@@ -342,6 +342,28 @@ def test_a_cap_whose_removal_would_leave_a_knife_ridge_is_put_back():
     assert clean.boundary_wedges()[1].min() < 28.5
 
 
+def test_a_fold_cap_sharper_than_what_its_removal_leaves_is_dropped_again():
+    """A cap put back for a fold must leave the boundary less sharp than without it: in a
+    fan that almost closes (a 3-degree sector of caps beside a 345-degree fan), putting back
+    the cap at the axis turns a 15-degree slit into a 12-degree one, with a 3-degree tet
+    standing in it; so it goes again, and every tet left is sound. The 28 + 3 degree fan of
+    the test above keeps its cap: without it the ridge would be sharper."""
+    from holowarp.stages.cleanup import _sharpest_at
+
+    mesh, owner = edge_fan([(0, 90), (90, 180), (180, 270), (270, 345), (345, 348)])
+    q = mesh.quality()["min_dihedral_deg"]
+    assert np.all(q[owner == 4] < CleanupConfig().cap_dihedral_deg) and np.all(q[owner < 4] > 20.0)
+    t = mesh.tets.astype(np.int64)
+    cap = int(np.flatnonzero((owner == 4) & (t == 0).any(axis=1) & (t == 1).any(axis=1))[0])  # the sector's tet at the axis
+    with_cap = TetMesh(mesh.vertices, t[(owner < 4) | (np.arange(len(t)) == cap)])
+    assert np.isclose(_sharpest_at(with_cap, t[[cap]], mesh.num_vertices)[0], 12.0, atol=1e-6)
+    assert np.isclose(_sharpest_at(TetMesh(mesh.vertices, t[owner < 4]), t[[cap]], mesh.num_vertices)[0], 15.0,
+                      atol=1e-6)
+    clean, kept, info = cleanup(mesh, CleanupConfig(flap_dihedral_deg=0.0))
+    assert info["caps_restored_for_folds"] == 0 and info["dropped_caps"] == int((owner == 4).sum())
+    assert info["manifold"] and clean.quality()["min_dihedral_deg"].min() > 20.0
+
+
 def test_tets_wrapping_past_a_full_turn_are_peeled_at_an_end_of_their_fan():
     # Eight 50-degree sectors round one edge: 400 degrees, so the first and the last
     # sector overlap in space (the rim spirals outwards, so no two vertices coincide). The
