@@ -38,6 +38,7 @@ __all__ = [
     "view_sphere",
     "sample_points_in_hull",
     "in_front_of_surface",
+    "lid_pixels",
     "depth_from_normals",
     "hull_genus",
     "solid_genus",
@@ -304,7 +305,7 @@ def depth_from_normals(depth, alpha, normal, viewmat, K, *, jump: float = 0.02, 
     return out
 
 
-def in_front_of_surface(dataset, points, views, depths, alphas, *, tol: float, min_views: int = 1,
+def in_front_of_surface(dataset, points, views, depths, alphas, *, tol, min_views: int = 1,
                         window: int = 1) -> np.ndarray:
     """(P,) bool: ``points`` (P, 3) that at least ``min_views`` of ``views`` see in front of
     the surface, i.e. empty space the silhouettes cannot show (a concavity seen from outside).
@@ -315,6 +316,7 @@ def in_front_of_surface(dataset, points, views, depths, alphas, *, tol: float, m
     whole ``(2 window + 1)²`` neighbourhood) and its camera depth is smaller than the NEAREST
     surface depth of that neighbourhood by more than ``tol``: taking the nearest depth keeps
     thin walls whole where the depth map jumps (a bowl's rim in front of its floor).
+    ``tol`` is a number (scene units) or a per-pixel map (len(views), H, W).
     """
     from scipy.ndimage import minimum_filter
 
@@ -332,6 +334,28 @@ def in_front_of_surface(dataset, points, views, depths, alphas, *, tol: float, m
         ok = (z > 1e-6) & (col >= 0) & (col < W) & (row >= 0) & (row < H)
         hit = np.zeros(len(P), dtype=bool)
         r, c = row[ok], col[ok]
-        hit[ok] = opaque[r, c] & (z[ok] < near[r, c] - tol)
+        t = tol if np.ndim(tol) == 0 else np.asarray(tol[j])[r, c]
+        hit[ok] = opaque[r, c] & (z[ok] < near[r, c] - t)
         count += hit
     return count >= min_views
+
+
+def lid_pixels(depth, alpha, corrected, *, gap: float, window: int = 1):
+    """Where a surface's depth map closes a cavity that the normal-corrected depth opens.
+
+    ``depth``, ``alpha``, ``corrected`` (H, W): a rendered surface's depth and opacity and
+    the same depth corrected by the normal maps (:func:`depth_from_normals`, NaN or inf
+    where it is unknown). Each depth is taken as the nearest of its ``(2 window + 1)²``
+    neighbourhood, every pixel of which must be opaque (as :func:`in_front_of_surface` takes
+    them, so a rim next to a deeper floor is not a lid). Returns ``(lid, near_corrected)``:
+    (H, W) bool, the pixels whose corrected depth lies more than ``gap`` behind the surface
+    (a lid over a cavity), and (H, W) float64, that nearest corrected depth (inf where
+    unknown or not opaque)."""
+    from scipy.ndimage import minimum_filter
+
+    size = 2 * window + 1
+    d0, a, dc = (np.asarray(m, dtype=np.float64) for m in (depth, alpha, corrected))
+    opaque = minimum_filter((a > 0.5).astype(np.uint8), size=size) > 0
+    near0 = minimum_filter(np.where(opaque, d0, np.inf), size=size)
+    nearc = minimum_filter(np.where(opaque & np.isfinite(dc), dc, np.inf), size=size)
+    return opaque & np.isfinite(nearc) & (nearc > near0 + gap), nearc

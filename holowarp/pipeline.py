@@ -260,8 +260,9 @@ class _Run:
         # The depth evidence prunes on its own only where normal maps made it good (TopologyConfig.prune_in_front).
         forced, t = None, self.cfg.topology
         if t.prune_in_front and self.ds.normals is not None and evidence is not None:
-            forced = in_front if t.prune_in_front_tol == t.depth_carve_tol else evidence.in_front(
-                mesh, tol=t.prune_in_front_tol)
+            lid = None if t.prune_in_front_lid_tol is None else (t.prune_in_front_lid_gap, t.prune_in_front_lid_tol)
+            forced = in_front if (t.prune_in_front_tol == t.depth_carve_tol and lid is None) else evidence.in_front(
+                mesh, tol=t.prune_in_front_tol, lid=lid)
         info = prune(self.model, self.cfg.topology, evidence=None if outside is None else outside | in_front,
                      outside=outside, genus_bound=(lambda: evidence.hull_genus(mesh)) if evidence else None,
                      in_front=forced)

@@ -654,6 +654,51 @@ def test_depth_pull_moves_vertices_in_front_of_a_lid_back_along_their_rays(spher
     assert shrunk[0.99] == 0 and shrunk[0.0] > 0
 
 
+def test_depth_pull_target_is_the_pixels_own_depth_on_a_slope_and_the_nearest_at_a_rim(sphere_scene, rng):
+    """On a slanted floor deep under its lid (the corrected depth rising across the image by
+    less than a mean edge per pixel) the pull's target is each pixel's own corrected depth
+    less the margin; next to a rim (a jump of more than a mean edge inside the 3x3 window)
+    it is the nearest depth of the window, so the rim's vertices are not pulled into the
+    floor, and so it is where the lid is shallow."""
+    from scipy.ndimage import minimum_filter
+
+    from holowarp.stages.geometry import GeometryBlock
+
+    ds, _ = sphere_scene
+    view = int(ds.train_idx[0])
+    model = _grid_carved_model(ds, 8)
+    H, W = ds.height, ds.width
+    cfg = GeometryConfig(depth_pull=0.5, depth_pull_margin=0.1)
+    probe = GeometryBlock(model, ds, ds.train_idx, cfg, block_iters=4, total_mesh_iters=4)
+    L = probe.mean_edge
+    d0 = np.full((H, W), 2.0, np.float32)
+    slope = rng.uniform(0.05, 0.3) * L  # per column: well under a mean edge
+    dc = (2.0 + 3 * L + slope * np.arange(W))[None, :].repeat(H, 0)
+    rim = W // 2
+    dc[:, rim:] += 5 * L  # a step of five mean edges: a rim in front of a deeper floor
+    alpha = np.ones((H, W), np.float32)
+    blk = GeometryBlock(model, ds, ds.train_idx, cfg, block_iters=4, total_mesh_iters=4,
+                        depth_maps={view: (d0, alpha, dc.astype(np.float32))})
+    got = blk.depth_target(view).numpy().astype(np.float64)
+    margin = 0.1 * L
+    nearest = minimum_filter(dc, size=3)
+    inner = np.zeros((H, W), bool)
+    inner[1:-1, 1:-1] = True
+    step = inner & (np.arange(W) == rim)[None, :]  # the deep side of the step sees the rim in its window
+    smooth = inner & ~step
+    np.testing.assert_allclose(got[smooth], (dc - margin)[smooth], rtol=1e-6)
+    np.testing.assert_allclose(got[step], (nearest - margin)[step], rtol=1e-6)
+    assert (nearest < dc)[smooth].all()  # the window's nearest would have stopped the pull short
+    # Less than depth_pull_own_gap behind the stage-0 depth (not a lid, a surface the
+    # corrected map may put a little too deep), the target stays the window's nearest.
+    sloped = (2.0 + slope * np.arange(W))[None, :].repeat(H, 0)
+    shallow = sloped + 0.3 * L
+    blk = GeometryBlock(model, ds, ds.train_idx, cfg, block_iters=4, total_mesh_iters=4,
+                        depth_maps={view: (sloped.astype(np.float32), alpha, shallow.astype(np.float32))})
+    got = blk.depth_target(view).numpy().astype(np.float64)
+    np.testing.assert_allclose(got[inner], (minimum_filter(shallow, size=3) - margin)[inner], rtol=1e-6)
+
+
 def test_min_dihedral_matches_the_tet_mesh_and_the_sliver_guard_puts_back_the_moves_that_flatten(rng):
     """``min_dihedral_deg`` against :meth:`TetMesh.dihedral_angles` on random tets (float64) and
     a regular tet's arccos(1/3); ``revert_sliver_moves`` puts back exactly the moved vertices of
@@ -1017,6 +1062,49 @@ def test_depth_carved_adds_the_corrected_maps_at_their_own_view_count():
         corrected = np.where(np.arange(n)[:, None, None] < k, deeper, depths)
         carved = depth_carved(ds, P, np.arange(n), (depths, alphas, corrected), cfg, tol=0.02)
         assert carved.all() if k >= cfg.depth_normals_min_views else not carved.any()
+
+
+def test_lid_pixels_and_the_lid_tolerance_of_the_corrected_carve():
+    """A lid is where the corrected depth lies more than the gap behind the surface's (each
+    the nearest over an opaque 3x3 window); there the corrected carve uses the lid tolerance,
+    elsewhere the plain one."""
+    from holowarp.carve import lid_pixels
+    from holowarp.stages.topology import depth_carved
+
+    rng = np.random.default_rng(11)
+    depth, mask, normal, K = _squares_view([((0.0, 0.0, -1.0), (0.0, 0.0, 3.0), 0.8)])
+    H, W = depth.shape
+    cols = np.arange(W)[None, :].repeat(H, 0)
+    behind = rng.uniform(0.05, 0.3, size=(H, W))
+    corrected = np.where(cols < W // 2, depth + behind, depth + 0.01)  # a lid over the left half only
+    lid, nearc = lid_pixels(depth, mask, corrected, gap=0.04)
+    # oracle: nearest opaque depths over the 3x3 window, by brute force
+    pad = lambda a, fill: np.pad(a, 1, constant_values=fill)
+    op = pad(mask > 0.5, False)
+    win = lambda a: np.stack([a[1 + dy:H + 1 + dy, 1 + dx:W + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+    opaque = win(op).all(axis=0)
+    n0 = win(pad(np.where(opaque, depth, np.inf), np.inf)).min(axis=0)
+    nc = win(pad(np.where(opaque, corrected, np.inf), np.inf)).min(axis=0)
+    assert np.array_equal(lid, opaque & np.isfinite(nc) & (nc > n0 + 0.04))
+    assert np.allclose(np.where(np.isfinite(nc), nearc, 0), np.where(np.isfinite(nc), nc, 0))
+    assert lid[:, : W // 2 - 2].any() and not lid[:, W // 2 + 1:].any()
+
+    n = TopologyConfig().depth_normals_min_views
+    ds = Dataset(images=np.zeros((n, H, W, 3), np.float32), masks=np.repeat(mask[None], n, 0), K=np.repeat(K[None], n, 0),
+                 viewmats=np.repeat(np.eye(4)[None], n, 0), train_idx=np.arange(n), test_idx=np.zeros(0, int), name="sq")
+    maps = (np.repeat(depth[None], n, 0), np.repeat(mask[None], n, 0), np.repeat(corrected[None], n, 0))
+    # points 0.03 in front of the corrected depth: carved at tolerance 0.02, kept at 0.06
+    ij = np.argwhere(opaque)[rng.choice(int(opaque.sum()), 300, replace=False)]
+    z = nc[ij[:, 0], ij[:, 1]] - 0.03
+    uv = np.column_stack([ij[:, 1] + 0.5, ij[:, 0] + 0.5])
+    P = np.column_stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * z, (uv[:, 1] - K[1, 2]) / K[1, 1] * z, z])
+    cfg = TopologyConfig()
+    in_lid = lid[ij[:, 0], ij[:, 1]]
+    assert in_lid.any() and (~in_lid).any()
+    plain = depth_carved(ds, P, np.arange(n), maps, cfg, tol=0.06)
+    assert not plain.any()
+    mixed = depth_carved(ds, P, np.arange(n), maps, cfg, tol=0.06, lid=(0.04, 0.02))
+    assert np.array_equal(mixed, in_lid)
 
 
 def test_surfels_follow_the_element_improvement_through_the_parent_map(rng):

@@ -91,17 +91,27 @@ def surfel_depth_maps(gaussians_ply, dataset, views, *, device="cpu", config: To
     return depths, alphas, corrected
 
 
-def depth_carved(dataset, points, views, depth_maps, config: TopologyConfig, *, tol: float) -> np.ndarray:
+def depth_carved(dataset, points, views, depth_maps, config: TopologyConfig, *, tol: float,
+                 lid: tuple[float, float] | None = None) -> np.ndarray:
     """(P,) bool: ``points`` the depth maps show empty: in front of the stage-0 surface
     (``depth_maps[:2]``, depths and alphas) in ``config.depth_carve_min_views`` of ``views``,
     or in front of the normal-corrected surface (``depth_maps[2]`` when present and not None)
     in ``config.depth_normals_min_views`` (:attr:`TopologyConfig.depth_carve_normals`), by
-    more than ``tol``."""
+    more than ``tol``. ``lid`` = ``(gap, lid_tol)``: against the corrected surface, pixels
+    whose corrected depth lies more than ``gap`` behind the stage-0 depth
+    (:func:`holowarp.carve.lid_pixels`, a lid over a cavity) use ``lid_tol`` instead."""
     depths, alphas, *rest = depth_maps
     carved = in_front_of_surface(dataset, points, views, depths, alphas, tol=tol, min_views=config.depth_carve_min_views,
                                  window=config.depth_carve_window)
     if rest and rest[0] is not None:
-        carved |= in_front_of_surface(dataset, points, views, rest[0], alphas, tol=tol,
+        t = tol
+        if lid is not None:
+            from holowarp.carve import lid_pixels
+
+            t = np.stack([np.where(lid_pixels(depths[j], alphas[j], rest[0][j], gap=lid[0],
+                                              window=config.depth_carve_window)[0], lid[1], tol)
+                          for j in range(len(views))])
+        carved |= in_front_of_surface(dataset, points, views, rest[0], alphas, tol=t,
                                       min_views=config.depth_normals_min_views, window=config.depth_carve_window)
     return carved
 
@@ -152,16 +162,20 @@ class EmptyEvidence:
         c = mesh.vertices[mesh.tets].mean(axis=1)
         return ~inside_hull(self.ds, c, self.ds.train_idx, device=self.device), self.in_front(mesh)
 
-    def in_front(self, mesh: TetMesh, *, tol: float | None = None) -> np.ndarray:
+    def in_front(self, mesh: TetMesh, *, tol: float | None = None, lid: tuple[float, float] | None = None) -> np.ndarray:
         """(M,) bool: the tets whose centroid lies in front of the stage-0 surface (or of its
         normal-corrected depth) in enough views by more than ``tol`` mean edge lengths of
-        ``mesh`` (default ``depth_carve_tol``; :func:`depth_carved`): as good as the surfels'
-        depth; all False without stage-0 surfels."""
+        ``mesh`` (default ``depth_carve_tol``; :func:`depth_carved`, whose ``lid`` (gap,
+        tolerance) this takes in mean edges too): as good as the surfels' depth; all False
+        without stage-0 surfels."""
         maps = self.maps()
         if maps is None:
             return np.zeros(mesh.num_tets, dtype=bool)
-        tol = _carve_tol(mesh, self.cfg.depth_carve_tol if tol is None else tol)
-        return depth_carved(self.ds, mesh.vertices[mesh.tets].mean(axis=1), self.views, maps, self.cfg, tol=tol)
+        edge = _carve_tol(mesh, 1.0)
+        tol = edge * (self.cfg.depth_carve_tol if tol is None else tol)
+        lid = None if lid is None else (edge * lid[0], edge * lid[1])
+        return depth_carved(self.ds, mesh.vertices[mesh.tets].mean(axis=1), self.views, maps, self.cfg, tol=tol,
+                            lid=lid)
 
 
 def _carve_tol(mesh: TetMesh, factor: float) -> float:
