@@ -39,6 +39,7 @@ __all__ = [
     "sample_points_in_hull",
     "in_front_of_surface",
     "lid_pixels",
+    "nearest_depths",
     "depth_from_normals",
     "hull_genus",
     "solid_genus",
@@ -340,17 +341,13 @@ def in_front_of_surface(dataset, points, views, depths, alphas, *, tol, min_view
     return count >= min_views
 
 
-def lid_pixels(depth, alpha, corrected, *, gap: float, window: int = 1):
-    """Where a surface's depth map closes a cavity that the normal-corrected depth opens.
-
-    ``depth``, ``alpha``, ``corrected`` (H, W): a rendered surface's depth and opacity and
-    the same depth corrected by the normal maps (:func:`depth_from_normals`, NaN or inf
-    where it is unknown). Each depth is taken as the nearest of its ``(2 window + 1)²``
-    neighbourhood, every pixel of which must be opaque (as :func:`in_front_of_surface` takes
-    them, so a rim next to a deeper floor is not a lid). Returns ``(lid, near_corrected)``:
-    (H, W) bool, the pixels whose corrected depth lies more than ``gap`` behind the surface
-    (a lid over a cavity), and (H, W) float64, that nearest corrected depth (inf where
-    unknown or not opaque)."""
+def nearest_depths(depth, alpha, corrected, *, window: int = 1):
+    """A surface's depth map and its normal-corrected version (:func:`depth_from_normals`),
+    each pixel's the nearest of its ``(2 window + 1)²`` neighbourhood, as
+    :func:`in_front_of_surface` takes them: ``(opaque, near_surface, near_corrected)``, (H, W):
+    bool, the pixels whose whole neighbourhood is opaque (``alpha > 0.5``), and float64,
+    the nearest depths over the opaque pixels of the neighbourhood (inf where there are none,
+    and, for the corrected one, where it is unknown: NaN or inf)."""
     from scipy.ndimage import minimum_filter
 
     size = 2 * window + 1
@@ -358,4 +355,18 @@ def lid_pixels(depth, alpha, corrected, *, gap: float, window: int = 1):
     opaque = minimum_filter((a > 0.5).astype(np.uint8), size=size) > 0
     near0 = minimum_filter(np.where(opaque, d0, np.inf), size=size)
     nearc = minimum_filter(np.where(opaque & np.isfinite(dc), dc, np.inf), size=size)
+    return opaque, near0, nearc
+
+
+def lid_pixels(depth, alpha, corrected, *, gap: float, window: int = 1):
+    """Where a surface's depth map closes a cavity that the normal-corrected depth opens.
+
+    ``depth``, ``alpha``, ``corrected`` (H, W): a rendered surface's depth and opacity and
+    the same depth corrected by the normal maps (:func:`depth_from_normals`, NaN or inf
+    where it is unknown), each taken as the nearest of its neighbourhood
+    (:func:`nearest_depths`, so a rim next to a deeper floor is not a lid). Returns
+    ``(lid, near_corrected)``: (H, W) bool, the pixels whose corrected depth lies more than
+    ``gap`` behind the surface (a lid over a cavity), and (H, W) float64, that nearest
+    corrected depth (inf where unknown or not opaque)."""
+    opaque, near0, nearc = nearest_depths(depth, alpha, corrected, window=window)
     return opaque & np.isfinite(nearc) & (nearc > near0 + gap), nearc

@@ -745,19 +745,8 @@ class TopologyConfig:
         if not (isinstance(self.depth_normals_grazing, (int, float)) and 0.0 <= self.depth_normals_grazing < 1.0):
             raise ValueError(f"TopologyConfig.depth_normals_grazing must be a cosine in [0, 1), got "
                              f"{self.depth_normals_grazing!r}")
-        if not (isinstance(self.prune_in_front_tol, (int, float)) and math.isfinite(self.prune_in_front_tol)
-                and self.prune_in_front_tol >= 0.0):
-            raise ValueError(f"TopologyConfig.prune_in_front_tol must be a finite number >= 0 (mean edges), got "
-                             f"{self.prune_in_front_tol!r}")
-        if self.prune_in_front_lid_tol is not None and not (
-                isinstance(self.prune_in_front_lid_tol, (int, float)) and math.isfinite(self.prune_in_front_lid_tol)
-                and self.prune_in_front_lid_tol >= 0.0):
-            raise ValueError(f"TopologyConfig.prune_in_front_lid_tol must be None or a finite number >= 0 (mean "
-                             f"edges), got {self.prune_in_front_lid_tol!r}")
-        if not (isinstance(self.prune_in_front_lid_gap, (int, float)) and math.isfinite(self.prune_in_front_lid_gap)
-                and self.prune_in_front_lid_gap >= 0.0):
-            raise ValueError(f"TopologyConfig.prune_in_front_lid_gap must be a finite number >= 0 (mean edges), got "
-                             f"{self.prune_in_front_lid_gap!r}")
+        for name in ("prune_in_front_tol", "prune_in_front_lid_tol", "prune_in_front_lid_gap"):
+            _check_mean_edges(self, name, none_ok=name == "prune_in_front_lid_tol")
         if self.split_guard is not None and not (isinstance(self.split_guard, (int, float))
                                                  and 0.0 <= self.split_guard <= 1.0):
             raise ValueError(f"TopologyConfig.split_guard must be None or a fraction in [0, 1], got {self.split_guard!r}")
@@ -928,16 +917,11 @@ class GeometryConfig:
         if not (isinstance(self.depth_pull_min_volume, (int, float)) and 0.0 <= self.depth_pull_min_volume <= 1.0):
             raise ValueError(f"GeometryConfig.depth_pull_min_volume must be a fraction in [0, 1], got "
                              f"{self.depth_pull_min_volume!r}")
-        if not (isinstance(self.depth_pull_own_gap, (int, float)) and self.depth_pull_own_gap >= 0.0):
-            raise ValueError(f"GeometryConfig.depth_pull_own_gap must be a number >= 0 (mean edges), got "
-                             f"{self.depth_pull_own_gap!r}")
         if not (isinstance(self.depth_pull_min_dihedral, (int, float)) and 0.0 <= self.depth_pull_min_dihedral < 70.0):
             raise ValueError(f"GeometryConfig.depth_pull_min_dihedral must be in [0, 70) degrees, got "
                              f"{self.depth_pull_min_dihedral!r}")
-        if not (isinstance(self.depth_pull_margin, (int, float)) and math.isfinite(self.depth_pull_margin)
-                and self.depth_pull_margin >= 0.0):
-            raise ValueError(f"GeometryConfig.depth_pull_margin must be a finite number >= 0 (mean edges), got "
-                             f"{self.depth_pull_margin!r}")
+        for name in ("depth_pull_margin", "depth_pull_own_gap"):
+            _check_mean_edges(self, name)
 
 
 @dataclass(frozen=True)
@@ -989,6 +973,17 @@ class CleanupConfig:
         if not self.blunt_max_move >= 0.0 or self.blunt_rounds < 0:
             raise ValueError(f"CleanupConfig.blunt_max_move must be >= 0 and blunt_rounds >= 0, got "
                              f"{self.blunt_max_move!r} and {self.blunt_rounds!r}")
+
+
+def _check_mean_edges(cfg, name: str, *, none_ok: bool = False) -> None:
+    """Refuse, by name, a setting of ``cfg`` in mean edge lengths that is not a finite number
+    >= 0 (or None, where ``none_ok``)."""
+    v = getattr(cfg, name)
+    if v is None and none_ok:
+        return
+    if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0.0):
+        raise ValueError(f"{type(cfg).__name__}.{name} must be {'None or ' if none_ok else ''}a finite number >= 0 "
+                         f"(mean edges), got {v!r}")
 
 
 def _check_min_component(f, where: str) -> None:

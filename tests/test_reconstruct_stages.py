@@ -1196,7 +1196,10 @@ def test_depth_normals_settings_out_of_range_are_refused_by_name(bad):
 @pytest.mark.parametrize("cls, bad", [(TopologyConfig, {"prune_in_front_tol": -0.5}),
                                       (TopologyConfig, {"prune_in_front_tol": float("inf")}),
                                       (GeometryConfig, {"depth_pull": 1.5}), (GeometryConfig, {"depth_pull": -0.1}),
-                                      (GeometryConfig, {"depth_pull_margin": float("nan")})])
+                                      (GeometryConfig, {"depth_pull_margin": float("nan")}),
+                                      (TopologyConfig, {"prune_in_front_lid_tol": -0.1}),
+                                      (TopologyConfig, {"prune_in_front_lid_gap": float("nan")}),
+                                      (GeometryConfig, {"depth_pull_own_gap": -1.0})])
 def test_depth_evidence_settings_out_of_range_are_refused_by_name(cls, bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         cls(**bad)

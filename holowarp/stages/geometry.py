@@ -245,15 +245,17 @@ class GeometryBlock:
         if self.depth_maps is None or view not in self.depth_maps:
             return None
         if view not in self.targets:
-            from holowarp.carve import lid_pixels
+            from holowarp.carve import nearest_depths
 
             margin = self.cfg.depth_pull_margin * self.mean_edge
-            lid, nearc = lid_pixels(*self.depth_maps[view], gap=margin)
+            opaque, near0, nearc = nearest_depths(*self.depth_maps[view])
             own = np.asarray(self.depth_maps[view][2], dtype=np.float64)
-            deep, _ = lid_pixels(*self.depth_maps[view], gap=self.cfg.depth_pull_own_gap * self.mean_edge)
-            smooth = deep & np.isfinite(own) & (own - nearc < self.mean_edge)
+            with np.errstate(invalid="ignore"):  # inf - inf off the opaque region, masked out
+                behind = np.where(opaque & np.isfinite(nearc), nearc - near0, -np.inf)  # how deep the lid is
+                smooth = (behind > self.cfg.depth_pull_own_gap * self.mean_edge) & (own - nearc < self.mean_edge)
             target = np.where(smooth, own, nearc) - margin
-            self.targets[view] = torch.tensor(np.where(lid, target, np.nan), dtype=torch.float32, device=self.x.device)
+            self.targets[view] = torch.tensor(np.where(behind > margin, target, np.nan), dtype=torch.float32,
+                                              device=self.x.device)
         return self.targets[view]
 
     def pull_to_depth(self, x: torch.Tensor, view: int) -> int:
