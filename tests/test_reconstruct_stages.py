@@ -1155,6 +1155,57 @@ def test_appearance_refit_fits_colours_and_leaves_the_mesh_alone(sphere_scene):
     assert torch.equal(model.vertices.detach(), v0) and torch.equal(model.tets, t0)
 
 
+def _surfel_depth_normal_cos(model, ds) -> float:
+    """Mean cosine, over the train views' opaque pixels, between the surfels' rendered normals
+    and the normals of their rendered median depth (2DGS's normal consistency)."""
+    from holowarp import losses
+
+    cs = []
+    with torch.no_grad():
+        for v in ds.train_idx:
+            vm, K = torch.as_tensor(ds.viewmats[v]), torch.as_tensor(ds.K[v])
+            out = model.render(vm, K, ds.width, ds.height)
+            nd = losses.depth_to_normal(out["median_depth"], K, vm)
+            n = out["normal"]
+            ok = (out["alpha"] > 0.5) & (nd.norm(dim=-1) > 0.5)
+            cs.append(torch.nn.functional.cosine_similarity(n, nd.to(n), dim=-1)[ok])
+    return float(torch.cat(cs).mean())
+
+
+def test_refit_normal_weight_replaces_the_main_loops_only_without_normal_maps(sphere_scene):
+    """``ImproveConfig.refit_w_normal`` is the refit's L_normal weight on data without normal
+    maps (with maps, or None, the main loop's stays), and it does what it is for: from the
+    same scrambled rotations, the refit at that weight leaves the surfels' normals closer to
+    the normals of their own rendered depth than at the spec's 0.05."""
+    from holowarp.config import ImproveConfig
+    from holowarp.stages.topology import refit_appearance
+
+    topo = TopologyConfig()
+    im = ImproveConfig(refit_w_normal=2.0)
+    assert im.refit_topology(topo, normal_maps=True) is topo
+    assert ImproveConfig(refit_w_normal=None).refit_topology(topo, normal_maps=False) is topo
+    assert im.refit_topology(topo, normal_maps=False) == replace(topo, w_normal=2.0)
+    ds, _ = sphere_scene
+    ds = replace(ds, normals=None)
+    cos = {}
+    for w in (topo.w_normal, im.refit_w_normal):
+        model = _grid_carved_model(ds, 8)
+        g = torch.Generator().manual_seed(3)
+        with torch.no_grad():  # rotations as a flip leaves them: a neighbour's
+            model.quats.data = torch.nn.functional.normalize(torch.randn(model.quats.shape, generator=g), dim=1)
+        refit_appearance(model, ds, replace(topo, w_normal=w), 60, seed=1)
+        cos[w] = _surfel_depth_normal_cos(model, ds)
+    assert cos[im.refit_w_normal] > cos[topo.w_normal] + 0.04
+
+
+@pytest.mark.parametrize("bad", [-0.5, float("nan"), float("inf"), "1", True])
+def test_refit_normal_weight_out_of_range_is_refused_by_name(bad):
+    from holowarp.config import ImproveConfig
+
+    with pytest.raises(ValueError, match="refit_w_normal"):
+        ImproveConfig(refit_w_normal=bad)
+
+
 def test_preflight_accepts_a_thin_plate_that_falls_between_the_coarse_nodes():
     """A slab 3% of its size thick: the 24-node carve over the cameras' region finds no node
     inside it, the refined carve does, so the views are not called inconsistent."""
