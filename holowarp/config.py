@@ -1318,6 +1318,16 @@ class PolishConfig:
             (at 0.005: 0.591, 9.8°). Before the chord, ``1 - cos`` from 0 to 0.02 had raised
             normal consistency on all eight objects (at 0.05 the dented box's F@0.005 fell
             to 0.518).
+        after_w_surfels: on data without normal maps, the second fit's prior weight against
+            the surfels' rendered normals after their refit (:class:`holowarp.stages.polish.SurfelNormals`,
+            the same chord; 0: masks alone), which stand in for the maps as they do for §6's
+            ``L_norm``; the first fit, before §7b and unguarded by ``after_angle_floor``,
+            keeps the masks alone (a surfel prior there took lego's worst dihedral angle from
+            11.3° to 8.7-9.5°). Finishing one lego run again from its checkpoint (fast, 128²,
+            the refit at ``ImproveConfig.refit_w_normal`` 0.5; mesh_surfel_normal_cos / mask
+            IoU / held-out PSNR): 0 -> 0.878 / 0.9784 / 27.70 dB; 0.008 -> 0.888 / 0.9779 /
+            27.60; 0.05 -> 0.890 / 0.9775 / 27.55; 0.2 -> 0.891 / 0.9763 / 27.55; 0.05 with
+            120 steps -> 0.890. §7b's worst angle (11.3°) holds in each.
         refine_bend, refine_factor: before the first fit, the tets holding a boundary face
             that meets a neighbour at a boundary edge bent by ``refine_bend = (lo, hi)``
             degrees (the angle between the two faces' normals, ``lo < bend < hi``) are
@@ -1382,6 +1392,7 @@ class PolishConfig:
     after_volume_fraction: float = 0.9
     after_angle_floor: float | None = 10.0
     w_prior: float = 0.008
+    after_w_surfels: float = 0.05
     refine_bend: tuple[float, float] | None = (25.0, 60.0)
     refine_factor: float = 0.75
     refine_keep_deg: float = 10.0
@@ -1393,7 +1404,7 @@ class PolishConfig:
             v, lo = getattr(self, name), 0 if name.endswith("steps") else 1
             if isinstance(v, bool) or not (isinstance(v, int) and v >= lo):
                 raise ValueError(f"PolishConfig.{name} must be an integer >= {lo}, got {v!r}")
-        for name in ("lr", "smooth", "pit_depth", "w_prior"):
+        for name in ("lr", "smooth", "pit_depth", "w_prior", "after_w_surfels"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"PolishConfig.{name} must be a finite number >= 0, got {v!r}")

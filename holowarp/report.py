@@ -22,7 +22,9 @@ closes, and ``mesh_checks_per_view``), ``peak_rss_mb``, ``outputs``, ``previews`
 bisection at sharp bends, :func:`holowarp.stages.polish.refine_bends`'s info, ``null`` when
 off or nothing bends that much) and ``after``, the
 second fit's own section after §7b with ``angle_put_back``, the vertices
-:func:`holowarp.stages.polish.keep_angles` put back, overlaps included; ``null`` when off),
+:func:`holowarp.stages.polish.keep_angles` put back, overlaps included, and ``surfel_prior``,
+the weight of its prior against the surfels' normals (0 unless the data has no normal maps);
+``null`` when off),
 ``metrics``
 (method.md §9) when the dataset has a ground-truth mesh, and ``scene`` (method.md §11,
 :func:`scene_objects`) when the run is scene level. The mesh counts and qualities are those
@@ -340,18 +342,23 @@ def _polish_and_improve(model, clean, dataset, config, device, state):
 def _touch_up(model, clean, dataset, config, device, state, polish_info, *, improved: bool):
     """A short second fit of the polish after §7b (``PolishConfig.after_steps``, under the
     tighter ``after_volume_fraction``), which wins back what the improvement's boundary
-    operations undid; its section goes to ``polish_info["after"]``."""
+    operations undid; on data without normal maps its prior is the refitted surfels'
+    normals (``after_w_surfels``). Its section goes to ``polish_info["after"]``."""
     p = config.polish
     if polish_info is None or not improved or p.after_steps == 0:
         return clean
     from dataclasses import replace
 
-    from holowarp.stages.polish import keep_angles, keep_unfolded, polish_silhouettes
+    from holowarp.stages.polish import SurfelNormals, keep_angles, keep_unfolded, polish_silhouettes
 
     t0 = time.perf_counter()
     second = replace(p, steps=p.after_steps, min_volume_fraction=p.after_volume_fraction,
                      interior_follow=p.after_interior_follow)
-    V, info = polish_silhouettes(clean, dataset, second, seed=config.seed + 1, device=str(device))
+    normals = None
+    if dataset.normals is None and p.after_w_surfels > 0:  # the refitted surfels stand in for normal maps
+        normals, second = SurfelNormals(model, dataset, device), replace(second, w_prior=p.after_w_surfels)
+    V, info = polish_silhouettes(clean, dataset, second, seed=config.seed + 1, device=str(device), normals=normals)
+    info["surfel_prior"] = float(second.w_prior) if normals is not None else 0.0
     if p.after_angle_floor is not None:
         V, info["angle_put_back"] = keep_angles(clean, V, p.after_angle_floor)
     else:

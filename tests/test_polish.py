@@ -176,7 +176,8 @@ def test_keep_unfolded_puts_back_the_moves_that_wrap_a_fan_past_a_full_turn(rng)
                                  dict(pit_depth=-0.1), dict(pit_floor=1.0), dict(after_steps=-1),
                                  dict(after_volume_fraction=1.0), dict(after_angle_floor=-1.0),
                                  dict(after_angle_floor=90.0), dict(after_angle_floor=True),
-                                 dict(w_prior=-0.1), dict(w_prior=float("inf")), dict(refine_bend=(60.0, 25.0)),
+                                 dict(w_prior=-0.1), dict(w_prior=float("inf")), dict(after_w_surfels=-0.1),
+                                 dict(after_w_surfels=float("nan")), dict(refine_bend=(60.0, 25.0)),
                                  dict(refine_bend=(25.0,)), dict(refine_bend=(-1.0, 60.0)),
                                  dict(refine_bend=(25.0, 181.0)), dict(refine_bend=(True, 60.0)),
                                  dict(refine_factor=0.0), dict(refine_factor=1.5), dict(refine_keep_deg=-1.0),
@@ -264,6 +265,41 @@ def test_polish_normal_prior_adds_the_mean_chord_of_a_numpy_reference(grown_sphe
     V0, _ = polish_silhouettes(mesh, ds, cfg, seed=2)
     assert np.array_equal(polish_silhouettes(mesh, ds, replace(cfg, w_prior=1.0), seed=2)[0], V0)
     assert not np.array_equal(polish_silhouettes(mesh, with_n, replace(cfg, w_prior=1.0), seed=2)[0], V0)
+
+
+def test_a_normals_source_stands_in_for_the_datasets_maps(grown_sphere):
+    """``polish_silhouettes(normals=...)`` compares with the given maps exactly as with the
+    dataset's own, and :class:`SurfelNormals` gives the surfels' rendered normals, unit where
+    they are opaque and 0 elsewhere, rendered once per view."""
+    from dataclasses import replace
+
+    import torch
+
+    from holowarp.render_gt import GTRenderer
+    from holowarp.stages.polish import SurfelNormals
+    from holowarp.tetgs import TetGaussians
+
+    ds, mesh = grown_sphere
+    r = GTRenderer(*(lambda s: (s.vertices, s.faces))(trimesh.creation.icosphere(subdivisions=4, radius=RADIUS)))
+    maps = np.stack([r.render(vm, k, ds.width, ds.height)["normal"] for vm, k in zip(ds.viewmats, ds.K)]).astype(np.float32)
+    cfg = PolishConfig(steps=6, views=4, lr=0.03, min_volume_fraction=0.5, w_prior=1.0)
+    own, _ = polish_silhouettes(mesh, replace(ds, normals=maps), cfg, seed=2)
+    given, _ = polish_silhouettes(mesh, ds, cfg, seed=2, normals=lambda v: torch.as_tensor(maps[v]))
+    assert np.array_equal(own, given)
+    assert not np.array_equal(given, polish_silhouettes(mesh, ds, cfg, seed=2)[0])
+
+    model = TetGaussians(mesh)
+    src = SurfelNormals(model, ds, "cpu")
+    v = int(np.random.default_rng().integers(len(ds.viewmats)))
+    n = src(v)
+    assert src(v) is n and n.shape == (ds.height, ds.width, 3) and n.dtype == torch.float32
+    with torch.no_grad():
+        out = model.render(ds.viewmats[v], ds.K[v], ds.width, ds.height)
+    ref = out["normal"].double().numpy()
+    opaque = out["alpha"].numpy() > 0.5
+    ref = np.where(opaque[..., None], ref / np.maximum(np.linalg.norm(ref, axis=-1, keepdims=True), 1e-8), 0.0)
+    assert opaque.sum() > 50 and (~opaque).sum() > 50
+    np.testing.assert_allclose(n.numpy(), ref, atol=1e-5)
 
 
 def test_the_quality_bench_checks_the_element_angles_too():

@@ -76,7 +76,8 @@ import torch
 from holowarp.config import PolishConfig
 from holowarp.tetmesh import TetMesh, _row_keys, ridge_index
 
-__all__ = ["bend_tets", "keep_angles", "keep_unfolded", "lift_pits", "polish_silhouettes", "refine_bends"]
+__all__ = ["SurfelNormals", "bend_tets", "keep_angles", "keep_unfolded", "lift_pits", "polish_silhouettes",
+           "refine_bends"]
 
 
 def _boundary_graph(mesh: TetMesh):
@@ -101,7 +102,7 @@ def _mask_l1(x, faces, dataset, views, masks) -> float:
 
 
 def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: int = 0,
-                       device="cpu") -> tuple[np.ndarray, dict]:
+                       device="cpu", normals=None) -> tuple[np.ndarray, dict]:
     """Fit ``mesh``'s boundary vertices to ``dataset``'s training masks (module docstring).
 
     Args:
@@ -110,6 +111,9 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
         config: :class:`holowarp.config.PolishConfig`.
         seed: the views each step draws are a function of (seed, step).
         device: where the rasteriser runs.
+        normals: the normal maps the prior (``config.w_prior``) compares with, a callable
+            ``view -> (H, W, 3)`` tensor on ``device`` (0 where it holds no normal) used
+            instead of the dataset's: :class:`SurfelNormals`, for data without normal maps.
 
     Returns:
         (vertices (V, 3) float64, info) with info ``steps``, ``views_per_step``,
@@ -135,7 +139,7 @@ def polish_silhouettes(mesh: TetMesh, dataset, config: PolishConfig, *, seed: in
     incidence = vertex_tets(tets, x.shape[0])
     xb0 = x[ids_t].clone()
     # Converted per use: zero-copy on the CPU, and no second copy of every mask on a GPU.
-    masks = _Masks(dataset, dev)
+    masks = _Masks(dataset, dev, normals)
     check = train[np.linspace(0, len(train) - 1, min(config.check_views, len(train))).round().astype(int)]
     before = _mask_l1(xb0, faces, dataset, check, masks)
 
@@ -346,12 +350,13 @@ class _Fit:
 
 class _Masks:
     """``masks[v]``: view ``v``'s mask as a float32 (H, W) tensor on ``device``;
-    ``masks.normal(v)`` its normal map (H, W, 3), None when the dataset has none. Each view
-    goes to the device once (the fits draw every view many times; on CUDA each draw would
-    otherwise be an upload)."""
+    ``masks.normal(v)`` its normal map (H, W, 3): ``normals(v)`` when a source is given
+    (:class:`SurfelNormals`), else the dataset's, None when it has none. Each view goes to
+    the device once (the fits draw every view many times; on CUDA each draw would otherwise
+    be an upload)."""
 
-    def __init__(self, dataset, device):
-        self.dataset, self.device = dataset, device
+    def __init__(self, dataset, device, normals=None):
+        self.dataset, self.device, self.normals = dataset, device, normals
         self._masks: dict[int, torch.Tensor] = {}
         self._normals: dict[int, torch.Tensor] = {}
 
@@ -359,12 +364,40 @@ class _Masks:
         return self._get(self._masks, self.dataset.masks, int(v))
 
     def normal(self, v) -> torch.Tensor | None:
+        if self.normals is not None:
+            return self.normals(int(v))
         return None if self.dataset.normals is None else self._get(self._normals, self.dataset.normals, int(v))
 
     def _get(self, cache: dict, images, v: int) -> torch.Tensor:
         if v not in cache:
             cache[v] = torch.as_tensor(np.asarray(images[v]), dtype=torch.float32, device=self.device)
         return cache[v]
+
+
+class SurfelNormals:
+    """The surfels' rendered normals as normal maps, for the second fit on data without normal
+    maps (:attr:`holowarp.config.PolishConfig.after_w_surfels`): the stand-in §6's ``L_norm``
+    uses, the surfels as the photographs left them after the refit.
+
+    ``source(v)``: view ``v``'s (H, W, 3) float32 map on ``device``, the blended normal made
+    unit where the surfels' opacity exceeds 0.5 and 0 elsewhere (no normal there); rendered
+    on first use with the model's current vertices, then kept.
+    """
+
+    def __init__(self, model, dataset, device):
+        self.model, self.dataset, self.device = model, dataset, torch.device(device)
+        self._maps: dict[int, torch.Tensor] = {}
+
+    def __call__(self, v: int) -> torch.Tensor:
+        v = int(v)
+        if v not in self._maps:
+            ds = self.dataset
+            with torch.no_grad():
+                out = self.model.render(ds.viewmats[v], ds.K[v], ds.width, ds.height)
+                n = out["normal"] / out["normal"].norm(dim=-1, keepdim=True).clamp_min(1e-8)
+                n = torch.where((out["alpha"] > 0.5)[..., None], n, torch.zeros_like(n))
+            self._maps[v] = n.to(device=self.device, dtype=torch.float32).contiguous()
+        return self._maps[v]
 
 
 def _view_loss(xb, faces, dataset, v: int, mask, prior=None, w_prior: float = 0.0) -> torch.Tensor:
