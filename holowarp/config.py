@@ -1149,23 +1149,29 @@ class ImproveConfig:
             28.27 -> 29.39 (29.95 at 1200), the meshes unchanged. The 400 steps took 22.5 s
             alone on bob (18.1 -> 40.6 s for §7b and its refit), 10% of the main job's time,
             which the surfels alone do not justify in the fast preset.
-        refit_w_normal: the refit's weight of ``L_normal`` (the surfels' rendered normals
-            against the normals of their rendered depth, :func:`holowarp.stages.topology.gaussian_step`)
-            when the dataset has no normal maps; None keeps the main loop's
-            (``TopologyConfig.w_normal``, method.md §5's 0.05). With normal maps ``L_prior``
-            holds the surfels' normals (bob: 0.972 agreement with the mesh's,
-            ``mesh_surfel_normal_cos``) and the main loop's weight stays. Without them the
-            spec's 0.05 against ``L_rgb``'s 10 leaves them incoherent: on lego (fast, 128²)
-            only 18% of the covered pixels blend surfel normals whose sum is longer than 0.9
-            of its opacity, and the check is 0.845 (issue 16's target 0.9). 0.5 is 2DGS's own
-            ratio (normal consistency 0.05 to colour 1) on our colour weight. Finishes of
-            one lego run from its checkpoint (mesh unchanged, mask IoU 0.978), check /
-            held-out PSNR: 0.05 -> 0.845 / 28.27 dB; 0.5 -> 0.878 / 27.70; 2 -> 0.893 /
-            25.96 (600 steps: 0.893 / 26.71); with every pixel in the loss instead of the
-            ranked half, 1 -> 0.881 / 27.61, 4 -> 0.895 / 25.79: the surfels alone level off
-            under 0.9, the rest is the mesh's facets (a 3x3 blur of its normal image gives
-            0.936 at 2). On bob, which has normal maps, 0.5 would have cost 0.4 dB (32.21 ->
-            31.80) for 0.972 -> 0.978.
+        refit_w_normal, refit_steps_without_maps: on data without normal maps, the refit's
+            weight of ``L_normal`` (the surfels' rendered normals against the normals of their
+            rendered depth, :func:`holowarp.stages.topology.gaussian_step`) and its steps
+            (10000, scaled with the schedule: 800 in the fast preset); None keeps the main
+            loop's weight (``TopologyConfig.w_normal``, method.md §5's 0.05) and
+            ``refit_steps``. With normal maps ``L_prior`` holds the surfels' normals (bob:
+            0.972 agreement with the mesh's, ``mesh_surfel_normal_cos``) and the refit stays
+            as it is. Without them the spec's 0.05 against ``L_rgb``'s 10 leaves them
+            incoherent: on lego (fast, 128²) only 18% of the covered pixels blend surfel
+            normals whose sum is longer than 0.9 of its opacity, and the check was 0.845
+            (issue 16's target 0.9). 2DGS's own ratio (normal consistency 0.05 to colour 1)
+            is 0.5 on our colour weight; a weight at that scale costs colour, which a longer
+            refit wins back. Finishes of one lego run from its checkpoint (mesh unchanged but
+            for the second polish fit, :attr:`PolishConfig.after_w_surfels`; check / held-out
+            PSNR): the main loop's 0.05 and 200 steps -> 0.878 with the polish's prior off,
+            0.845 / 28.27 dB without either; 0.5, 200 steps -> 0.890 / 27.55; 0.5, 600 ->
+            0.892 / 28.54; 1.0, 600 -> 0.898 / 27.77; 1.0, 1000 -> 0.901 / 28.07; 1.25, 600
+            -> 0.901 / 27.41; 1.25, 800 -> 0.902 / 27.60; 1.5, 600 -> 0.903 / 27.11. Without
+            the polish's prior: 2.0, 200 -> 0.893 / 25.96 (600: 0.893 / 26.71); the surfels
+            alone level off under 0.9, the rest is the mesh's facets (a 3x3 blur of its
+            normal image gave 0.936 there). The 600 more steps cost lego 65 s: a whole run
+            alone took 364 s against 281 s before both changes (0.902 / 27.60 dB). On bob, which has normal maps, 0.5 at 200 steps would have cost
+            0.4 dB (32.21 -> 31.80) for 0.972 -> 0.978.
     """
 
     enabled: bool = True
@@ -1200,7 +1206,8 @@ class ImproveConfig:
     thin_fraction: float | None = 0.4
     thin_boundary_threshold: float = 0.7
     refit_steps: int = 2500
-    refit_w_normal: float | None = 0.5
+    refit_w_normal: float | None = 1.25
+    refit_steps_without_maps: int | None = 10000
 
     def __post_init__(self):
         if self.quality not in QUALITY_MEASURES:
@@ -1224,17 +1231,23 @@ class ImproveConfig:
         w = self.refit_w_normal
         if w is not None and not (isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and w >= 0):
             raise ValueError(f"refit_w_normal must be None or a finite number >= 0, got {w!r}")
+        n = self.refit_steps_without_maps
+        if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 0):
+            raise ValueError(f"refit_steps_without_maps must be None or an integer >= 0, got {n!r}")
         edges = tuple(float(e) for e in self.eta_histogram_edges)
         if len(edges) < 2 or any(b <= a for a, b in zip(edges, edges[1:])):
             raise ValueError(f"eta_histogram_edges must increase strictly, got {self.eta_histogram_edges}")
 
-    def refit_topology(self, topology: "TopologyConfig", *, normal_maps: bool) -> "TopologyConfig":
-        """The main-loop settings the surfel refit runs with: ``topology``, with ``w_normal``
-        set to :attr:`refit_w_normal` when the dataset has no normal maps (``normal_maps``
-        False) and that is not None."""
-        if normal_maps or self.refit_w_normal is None:
-            return topology
-        return replace(topology, w_normal=float(self.refit_w_normal))
+    def refit_settings(self, topology: "TopologyConfig", *, normal_maps: bool) -> tuple["TopologyConfig", int]:
+        """``(settings, steps)`` of the surfel refit: the main loop's ``topology`` and
+        :attr:`refit_steps`, except on data without normal maps (``normal_maps`` False),
+        where ``w_normal`` is :attr:`refit_w_normal` and the steps
+        :attr:`refit_steps_without_maps`, each where not None."""
+        if normal_maps:
+            return topology, self.refit_steps
+        topo = topology if self.refit_w_normal is None else replace(topology, w_normal=float(self.refit_w_normal))
+        steps = self.refit_steps if self.refit_steps_without_maps is None else self.refit_steps_without_maps
+        return topo, steps
 
 
 
@@ -1324,7 +1337,7 @@ class PolishConfig:
             ``L_norm``; the first fit, before §7b and unguarded by ``after_angle_floor``,
             keeps the masks alone (a surfel prior there took lego's worst dihedral angle from
             11.3° to 8.7-9.5°). Finishing one lego run again from its checkpoint (fast, 128²,
-            the refit at ``ImproveConfig.refit_w_normal`` 0.5; mesh_surfel_normal_cos / mask
+            the refit at ``ImproveConfig.refit_w_normal`` 0.5, 200 steps; mesh_surfel_normal_cos / mask
             IoU / held-out PSNR): 0 -> 0.878 / 0.9784 / 27.70 dB; 0.008 -> 0.888 / 0.9779 /
             27.60; 0.05 -> 0.890 / 0.9775 / 27.55; 0.2 -> 0.891 / 0.9763 / 27.55; 0.05 with
             120 steps -> 0.890. §7b's worst angle (11.3°) holds in each.
@@ -1494,7 +1507,9 @@ class ReconConfig:
             self,
             schedule=self.schedule.scaled(factor),
             geometry=replace(g, lr_start=g.lr_start / factor, lr_end=g.lr_end / factor),
-            improve=replace(im, refit_steps=int(round(im.refit_steps * factor))),
+            improve=replace(im, refit_steps=int(round(im.refit_steps * factor)),
+                            refit_steps_without_maps=None if im.refit_steps_without_maps is None
+                            else int(round(im.refit_steps_without_maps * factor))),
         )
 
     def with_ablations(

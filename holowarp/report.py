@@ -379,8 +379,8 @@ def _move_vertices(model, mesh, V):
 
 def _improve(model, clean, dataset, config, device, state):
     """The element improvement (method.md §7b) of the cleaned mesh, the surfels following
-    their parent tets and then refitted to the images (``ImproveConfig.refit_steps``, with
-    ``refit_w_normal`` on data without normal maps);
+    their parent tets and then refitted to the images (``ImproveConfig.refit_steps``; on data
+    without normal maps ``refit_steps_without_maps`` at ``refit_w_normal``);
     returns (mesh, report section or None when disabled)."""
     if not config.improve.enabled:
         return clean, None
@@ -391,8 +391,8 @@ def _improve(model, clean, dataset, config, device, state):
     model.apply_improve(mesh, parent)
     from holowarp.stages.topology import refit_appearance
 
-    topo = config.improve.refit_topology(config.topology, normal_maps=dataset.normals is not None)
-    info["refit"] = refit_appearance(model, dataset, topo, config.improve.refit_steps, seed=config.seed, device=device)
+    topo, steps = config.improve.refit_settings(config.topology, normal_maps=dataset.normals is not None)
+    info["refit"] = refit_appearance(model, dataset, topo, steps, seed=config.seed, device=device)
     info["refit"]["w_normal"] = topo.w_normal
     state.add_time("improve", time.perf_counter() - t0, 0)
     return mesh, info

@@ -1181,10 +1181,12 @@ def test_refit_normal_weight_replaces_the_main_loops_only_without_normal_maps(sp
     from holowarp.stages.topology import refit_appearance
 
     topo = TopologyConfig()
-    im = ImproveConfig(refit_w_normal=2.0)
-    assert im.refit_topology(topo, normal_maps=True) is topo
-    assert ImproveConfig(refit_w_normal=None).refit_topology(topo, normal_maps=False) is topo
-    assert im.refit_topology(topo, normal_maps=False) == replace(topo, w_normal=2.0)
+    im = ImproveConfig(refit_steps=30, refit_w_normal=2.0, refit_steps_without_maps=70)
+    assert im.refit_settings(topo, normal_maps=True) == (topo, 30)
+    assert ImproveConfig(refit_steps=30, refit_steps_without_maps=None).refit_settings(topo, normal_maps=False)[1] == 30
+    assert ImproveConfig(refit_w_normal=None).refit_settings(topo, normal_maps=False)[0] is topo
+    assert im.refit_settings(topo, normal_maps=False) == (replace(topo, w_normal=2.0), 70)
+    assert preset("fast").improve.refit_steps_without_maps == round(FAST_FACTOR * preset("paper").improve.refit_steps_without_maps)
     ds, _ = sphere_scene
     ds = replace(ds, normals=None)
     cos = {}
@@ -1198,12 +1200,15 @@ def test_refit_normal_weight_replaces_the_main_loops_only_without_normal_maps(sp
     assert cos[im.refit_w_normal] > cos[topo.w_normal] + 0.04
 
 
-@pytest.mark.parametrize("bad", [-0.5, float("nan"), float("inf"), "1", True])
-def test_refit_normal_weight_out_of_range_is_refused_by_name(bad):
+@pytest.mark.parametrize("bad", [{"refit_w_normal": -0.5}, {"refit_w_normal": float("nan")},
+                                 {"refit_w_normal": float("inf")}, {"refit_w_normal": "1"}, {"refit_w_normal": True},
+                                 {"refit_steps_without_maps": -1}, {"refit_steps_without_maps": 2.5},
+                                 {"refit_steps_without_maps": True}])
+def test_refit_settings_out_of_range_are_refused_by_name(bad):
     from holowarp.config import ImproveConfig
 
-    with pytest.raises(ValueError, match="refit_w_normal"):
-        ImproveConfig(refit_w_normal=bad)
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        ImproveConfig(**bad)
 
 
 def test_preflight_accepts_a_thin_plate_that_falls_between_the_coarse_nodes():
