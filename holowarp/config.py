@@ -1165,9 +1165,9 @@ class ImproveConfig:
             for the second polish fit, :attr:`PolishConfig.after_w_surfels`; check / held-out
             PSNR): the main loop's 0.05 and 200 steps, without the polish's prior -> 0.845 /
             28.27 dB; 0.5, 200 steps -> 0.878 / 27.70, with the prior 0.890 / 27.55; with the
-            prior from here on: 0.5, 600 ->
-            0.892 / 28.54; 1.0, 600 -> 0.898 / 27.77; 1.0, 1000 -> 0.901 / 28.07; 1.25, 600
-            -> 0.901 / 27.41; 1.25, 800 -> 0.902 / 27.60; 1.5, 600 -> 0.903 / 27.11. Without
+            prior from here on: 0.5, 600 -> 0.892 / 28.54; 1.0, 600 -> 0.898 / 27.77; 1.0,
+            1000 -> 0.901 / 28.07; 1.25, 600 -> 0.901 / 27.41; 1.25, 800 -> 0.902 / 27.60;
+            1.5, 600 -> 0.903 / 27.11. Without
             the polish's prior: 2.0, 200 -> 0.893 / 25.96 (600: 0.893 / 26.71); the surfels
             alone level off under 0.9, the rest is the mesh's facets (a 3x3 blur of its
             normal image gave 0.936 there). The 600 more steps cost lego 65 s: a whole run
@@ -1342,13 +1342,15 @@ class PolishConfig:
             normal consistency on all eight objects (at 0.05 the dented box's F@0.005 fell
             to 0.518).
         after_w_surfels: on data without normal maps, the second fit's prior weight against
-            the surfels' rendered normals after their refit (:class:`holowarp.stages.polish.SurfelNormals`,
-            the same chord; 0: masks alone), which stand in for the maps as they do for §6's
+            the surfels' rendered normals after their refit
+            (:class:`holowarp.stages.polish.SurfelNormals`, the same chord; 0: masks alone),
+            which stand in for the maps as they do for §6's
             ``L_norm``; the first fit, before §7b and unguarded by ``after_angle_floor``,
             keeps the masks alone (a surfel prior there took lego's worst dihedral angle from
             11.3° to 8.7-9.5°). Finishing one lego run again from its checkpoint (fast, 128²,
-            the refit at ``ImproveConfig.refit_w_normal`` 0.5, 200 steps; mesh_surfel_normal_cos / mask
-            IoU / held-out PSNR): 0 -> 0.878 / 0.9784 / 27.70 dB; 0.008 -> 0.888 / 0.9779 /
+            the refit at ``ImproveConfig.refit_w_normal`` 0.5, 200 steps;
+            mesh_surfel_normal_cos / mask IoU / held-out PSNR): 0 -> 0.878 / 0.9784 / 27.70
+            dB; 0.008 -> 0.888 / 0.9779 /
             27.60; 0.05 -> 0.890 / 0.9775 / 27.55; 0.2 -> 0.891 / 0.9763 / 27.55; 0.05 with
             120 steps -> 0.890. §7b's worst angle (11.3°) holds in each.
         refine_bend, refine_factor: before the first fit, the tets holding a boundary face

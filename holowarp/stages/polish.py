@@ -31,7 +31,9 @@ improvement (§7b), which runs next, finds the elements much as the main loop le
 A second, shorter fit follows the element improvement (``PolishConfig.after_steps``, under a
 tighter floor), since §7b's boundary flips and cap deletions undo part of the first. Its
 moves that would take a tet's smallest dihedral angle below §7b's worst (or below 10°,
-§7b's target, where §7b did better) are then put back (:func:`keep_angles`).
+§7b's target, where §7b did better) are then put back (:func:`keep_angles`). On data without
+normal maps its prior compares with the surfels' rendered normals after their refit
+(:class:`SurfelNormals`, ``PolishConfig.after_w_surfels``), as §6's ``L_norm`` does.
 
 Before the fit, :func:`refine_bends` bisects the tets where the boundary turns sharply
 (``PolishConfig.refine_bend``, which has the measurements), so that the fits have vertices to
