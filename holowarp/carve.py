@@ -319,16 +319,11 @@ def in_front_of_surface(dataset, points, views, depths, alphas, *, tol, min_view
     thin walls whole where the depth map jumps (a bowl's rim in front of its floor).
     ``tol`` is a number (scene units) or a per-pixel map (len(views), H, W).
     """
-    from scipy.ndimage import minimum_filter
-
     P = np.asarray(points, dtype=np.float64)
     count = np.zeros(len(P), dtype=np.int64)
     H, W = dataset.height, dataset.width
-    size = 2 * window + 1
     for j, v in enumerate(views):
-        d = np.where(alphas[j] > 0.5, depths[j], 0.0)
-        opaque = minimum_filter((alphas[j] > 0.5).astype(np.uint8), size=size) > 0
-        near = minimum_filter(np.where(opaque, d, np.inf), size=size)
+        opaque, near = _opaque_nearest(depths[j], alphas[j], window)
         uv, z = project_points(P, dataset.viewmats[v], dataset.K[v])
         col = np.floor(uv[:, 0]).astype(np.int64)
         row = np.floor(uv[:, 1]).astype(np.int64)
@@ -350,12 +345,22 @@ def nearest_depths(depth, alpha, corrected, *, window: int = 1):
     and, for the corrected one, where it is unknown: NaN or inf)."""
     from scipy.ndimage import minimum_filter
 
-    size = 2 * window + 1
-    d0, a, dc = (np.asarray(m, dtype=np.float64) for m in (depth, alpha, corrected))
-    opaque = minimum_filter((a > 0.5).astype(np.uint8), size=size) > 0
-    near0 = minimum_filter(np.where(opaque, d0, np.inf), size=size)
-    nearc = minimum_filter(np.where(opaque & np.isfinite(dc), dc, np.inf), size=size)
+    opaque, near0 = _opaque_nearest(depth, alpha, window)
+    dc = np.asarray(corrected, dtype=np.float64)
+    nearc = minimum_filter(np.where(opaque & np.isfinite(dc), dc, np.inf), size=2 * window + 1)
     return opaque, near0, nearc
+
+
+def _opaque_nearest(depth, alpha, window: int):
+    """``(opaque, near)`` (H, W): the pixels whose whole ``(2 window + 1)²`` neighbourhood has
+    ``alpha > 0.5``, and the nearest ``depth`` over those pixels of each neighbourhood (inf
+    where there are none)."""
+    from scipy.ndimage import minimum_filter
+
+    size = 2 * window + 1
+    opaque = minimum_filter((np.asarray(alpha) > 0.5).astype(np.uint8), size=size) > 0
+    near = minimum_filter(np.where(opaque, np.asarray(depth, dtype=np.float64), np.inf), size=size)
+    return opaque, near
 
 
 def lid_pixels(depth, alpha, corrected, *, gap: float, window: int = 1):

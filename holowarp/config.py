@@ -975,15 +975,16 @@ class CleanupConfig:
                              f"{self.blunt_max_move!r} and {self.blunt_rounds!r}")
 
 
-def _check_mean_edges(cfg, name: str, *, none_ok: bool = False) -> None:
-    """Refuse, by name, a setting of ``cfg`` in mean edge lengths that is not a finite number
-    >= 0 (or None, where ``none_ok``)."""
+def _check_mean_edges(cfg, name: str, *, none_ok: bool = False, unit: str = "mean edges") -> None:
+    """Refuse, by name, a setting of ``cfg`` that is not a finite number >= 0 (or None, where
+    ``none_ok``); ``unit`` names its unit in the message (the depth settings' mean edge
+    lengths by default)."""
     v = getattr(cfg, name)
     if v is None and none_ok:
         return
     if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0.0):
         raise ValueError(f"{type(cfg).__name__}.{name} must be {'None or ' if none_ok else ''}a finite number >= 0 "
-                         f"(mean edges), got {v!r}")
+                         f"({unit}), got {v!r}")
 
 
 def _check_min_component(f, where: str) -> None:
@@ -1238,9 +1239,7 @@ class ImproveConfig:
             raise ValueError(f"thin_fraction must be None or lie in [0, 1], got {self.thin_fraction}")
         if self.refit_steps < 0:
             raise ValueError(f"refit_steps must be >= 0, got {self.refit_steps}")
-        w = self.refit_w_normal
-        if w is not None and not (isinstance(w, (int, float)) and not isinstance(w, bool) and math.isfinite(w) and w >= 0):
-            raise ValueError(f"refit_w_normal must be None or a finite number >= 0, got {w!r}")
+        _check_mean_edges(self, "refit_w_normal", none_ok=True, unit="a loss weight")
         n = self.refit_steps_without_maps
         if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 0):
             raise ValueError(f"refit_steps_without_maps must be None or an integer >= 0, got {n!r}")
