@@ -36,6 +36,8 @@ from holowarp.ops.tet_energy import (
     hc_topology,
     inversion_penalty,
     phi_edge_losses,
+    prepare_hc_laplacian,
+    prepare_tet_energies,
     smoothness_loss,
     tet_energies,
 )
@@ -264,6 +266,16 @@ class TetEnergies:
         tets, dm_inv, adj, w = self._rest_for(x)
         return tet_energies(x, tets, dm_inv, adj, w, p, cache=cache)
 
+    def prepare_biharmonic_and_inversion(self, x: torch.Tensor, p: float = 2.0, *, cache, need: bool = True) -> None:
+        """Run :meth:`biharmonic_and_inversion`'s kernels now into ``cache`` (a
+        :class:`holowarp.ops._warp.StepCache`), so that its next call on the same ``x``, ``p``
+        and cache only takes their results (:func:`holowarp.ops.tet_energy.prepare_tet_energies`:
+        the geometry step runs this on a second thread while the rasteriser runs). Call
+        :meth:`biharmonic_and_inversion` once on this thread first: the rest shape is
+        captured there."""
+        tets, dm_inv, adj, w = self._rest_for(x)
+        prepare_tet_energies(x, tets, dm_inv, adj, w, p, cache=cache, need=need)
+
     def hc_topology(self, boundary_faces=None) -> HCTopology:
         """Surface connectivity for :meth:`hc_laplacian` (cached by the faces' contents)."""
         bf = self._mesh.boundary_faces() if boundary_faces is None else boundary_faces
@@ -305,6 +317,20 @@ class TetEnergies:
             lam_cond: weight of the inward normal part (0 in stage 1, 1 in stage 2).
             cache: see :func:`holowarp.ops.tet_energy.hc_laplacian_energy`.
         """
+        topo, x_orig = self._hc_args(x, boundary_faces, alpha)
+        return hc_laplacian_energy(x, topo, lam_cond, x_orig=x_orig, alpha=alpha, beta=beta, cache=cache)
+
+    def prepare_hc_laplacian(self, x: torch.Tensor, boundary_faces=None, lam_cond: float = 1.0, *,
+                             alpha: float = HC_ALPHA, beta: float = HC_BETA, cache, need: bool = True) -> None:
+        """Run :meth:`hc_laplacian`'s kernels now into ``cache``, for its next call with the
+        same arguments to take (:func:`holowarp.ops.tet_energy.prepare_hc_laplacian`; see
+        :meth:`prepare_biharmonic_and_inversion`)."""
+        topo, x_orig = self._hc_args(x, boundary_faces, alpha)
+        prepare_hc_laplacian(x, topo, lam_cond, x_orig=x_orig, alpha=alpha, beta=beta, cache=cache, need=need)
+
+    def _hc_args(self, x: torch.Tensor, boundary_faces, alpha: float):
+        """The surface connectivity on ``x``'s device and the original positions (None
+        with ``alpha`` 0) of :meth:`hc_laplacian`."""
         if not isinstance(x, torch.Tensor) or x.shape != (self.num_vertices, 3):
             raise ValueError(f"TetEnergies: x must be a ({self.num_vertices}, 3) float tensor, got {getattr(x, 'shape', type(x))}")
         topo = self.hc_topology(boundary_faces)
@@ -316,7 +342,7 @@ class TetEnergies:
             if self.rest_vertices is None:
                 self.capture_rest(x.detach())
             x_orig = self._rest_as(x)
-        return hc_laplacian_energy(x, topo, lam_cond, x_orig=x_orig, alpha=alpha, beta=beta, cache=cache)
+        return topo, x_orig
 
     def _rest_as(self, x: torch.Tensor) -> torch.Tensor:
         """The captured rest positions in ``x``'s dtype and device, cast once per pair."""

@@ -53,6 +53,7 @@ class UniformAdam(torch.optim.Optimizer):
         if max_step is not None and not max_step > 0.0:
             raise ValueError(f"UniformAdam: max_step must be > 0 or None, got {max_step}")
         super().__init__(params, dict(lr=lr, betas=(float(b1), float(b2)), eps=eps, max_step=max_step))
+        self._cache = None  # the Warp path's buffers and launches (holowarp.ops._warp.StepCache)
 
     @torch.no_grad()
     def step(self, closure=None):
@@ -64,6 +65,8 @@ class UniformAdam(torch.optim.Optimizer):
             b1, b2 = group["betas"]
             params = [p for p in group["params"] if p.grad is not None]
             if not params:
+                continue
+            if len(params) == 1 and self._rows_step(params[0], group):
                 continue
             m_hats, v_maxes = [], []
             for p in params:
@@ -94,6 +97,29 @@ class UniformAdam(torch.optim.Optimizer):
                     upd = upd * torch.clamp(cap / n.clamp_min(torch.finfo(upd.dtype).tiny), max=1.0)
                 p.sub_(upd)
         return loss
+
+
+    def _rows_step(self, p: torch.Tensor, group: dict) -> bool:
+        """The step of a group whose one parameter is (N, 3) rows (the geometry stage's
+        vertices) in two Warp passes (:func:`holowarp.ops.adam.uniform_adam_rows_`) instead
+        of about a dozen torch ops; False, having done nothing, for other parameters."""
+        from holowarp.ops.adam import rows_supported, uniform_adam_rows_
+
+        if not rows_supported(p):
+            return False
+        st = self.state[p]
+        if not st:
+            st["step"] = 0
+            st["exp_avg"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
+            st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
+        st["step"] += 1
+        if self._cache is None:
+            from holowarp.ops._warp import StepCache
+
+            self._cache = StepCache()
+        uniform_adam_rows_(p, st["exp_avg"], st["exp_avg_sq"], st["step"], lr=group["lr"], betas=group["betas"],
+                           eps=group["eps"], max_step=group["max_step"], cache=self._cache)
+        return True
 
 
 def cosine_lr(step: int, total: int, lr_start: float = LR_START, lr_end: float = LR_END) -> float:

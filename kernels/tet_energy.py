@@ -115,7 +115,7 @@ def biharmonic_forward_kernel(
     F: wp.array(dtype=Any),  # [M] mat33
     adjacency: wp.array(dtype=wp.vec4i),  # [M]
     weights: wp.array(dtype=Any),  # [M]
-    LF: wp.array(dtype=Any),  # [M] mat33, out: (L F)_e
+    wLF: wp.array(dtype=Any),  # [M] mat33, out: w_e (L F)_e, what the backward pass reads
     energy: wp.array(dtype=Any),  # [M], out: w_e ||(L F)_e||_F^2
 ):
     e = wp.tid()
@@ -130,7 +130,7 @@ def biharmonic_forward_kernel(
             deg += 1
     w = weights[e]
     g = fe * type(w)(deg) - acc
-    LF[e] = g
+    wLF[e] = g * w
     energy[e] = w * wp.ddot(g, g)
 
 
@@ -138,25 +138,25 @@ def biharmonic_forward_kernel(
 def biharmonic_backward_kernel(
     tets: wp.array(dtype=wp.vec4i),  # [M]
     adjacency: wp.array(dtype=wp.vec4i),  # [M]
-    weights: wp.array(dtype=Any),  # [M]
-    LF: wp.array(dtype=Any),  # [M] mat33 from the forward pass
+    wLF: wp.array(dtype=Any),  # [M] mat33 w_e (L F)_e from the forward pass
     dm_inv: wp.array(dtype=Any),  # [M] mat33
     grad_out: wp.array(dtype=Any),  # [1] dLoss/dEnergy
     grad_x: wp.array(dtype=Any),  # [N] vec3, accumulated
 ):
     # E = sum_e w_e ||G_e||^2, G = L F  =>  dE/dF = 2 L^T (w G) = 2 L (w G) (L symmetric).
+    # The forward pass stores w G, so each neighbour costs a load, not a load and a rescale.
     e = wp.tid()
-    w = weights[e]
-    wg = LF[e] * w
+    go = grad_out[0]
+    wg = wLF[e]
     acc = wg - wg
     a = adjacency[e]
     deg = int(0)
     for k in range(4):
         n = a[k]
         if n >= 0:
-            acc = acc + LF[n] * weights[n]
+            acc = acc + wLF[n]
             deg += 1
-    g_F = (wg * type(w)(deg) - acc) * (type(w)(2.0) * grad_out[0])
+    g_F = (wg * type(go)(deg) - acc) * (type(go)(2.0) * go)
     _scatter_ds_grad(grad_x, tets[e], g_F * wp.transpose(dm_inv[e]))
 
 
@@ -586,7 +586,7 @@ def _register_overloads():
         wp.overload(deformation_gradient_kernel, [aV, a4, aM, aM])
         wp.overload(deformation_gradient_backward_kernel, [a4, aM, aM, aV])
         wp.overload(biharmonic_forward_kernel, [aM, a4, aT, aM, aT])
-        wp.overload(biharmonic_backward_kernel, [a4, a4, aT, aM, aM, aT, aV])
+        wp.overload(biharmonic_backward_kernel, [a4, a4, aM, aM, aT, aV])
         wp.overload(inversion_penalty_kernel, [aV, a4, aM, T, wp.int32, aT, aV])
         wp.overload(tet_pass_kernel, [aV, a4, aM, T, wp.int32, aM, aT, aV])
         wp.overload(signed_volume_kernel, [aV, a4, aT])

@@ -46,6 +46,39 @@ def test_uniform_adam_matches_documented_update(rng, max_step):
         np.testing.assert_allclose(p.detach().numpy(), w, rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.parametrize("dtype, max_step", [(torch.float64, None), (torch.float64, 2e-3), (torch.float32, 2e-3)])
+def test_rows_take_the_warp_path_and_match_documented_update(rng, dtype, max_step):
+    """One (N, 3) parameter (the geometry stage's vertices) is stepped by the Warp kernels
+    (holowarp.kernels.optim); the same NumPy transcription is the oracle, from random
+    positions and gradients of mixed magnitude (so the cap and the shared normaliser act)."""
+    from holowarp.ops import adam
+
+    p0 = rng.normal(size=(300, 3))
+    grads = [rng.normal(size=(300, 3)) * rng.uniform(0.01, 10.0, size=(300, 1)) for _ in range(5)]
+    x = torch.tensor(p0, dtype=dtype, requires_grad=True)
+    opt = UniformAdam([x], lr=1e-2, betas=(0.8, 0.95), eps=1e-8, max_step=max_step)
+    calls = []
+    real = adam.uniform_adam_rows_
+    try:
+        adam.uniform_adam_rows_ = lambda *a, **k: (calls.append(1), real(*a, **k))
+        for g in grads:
+            x.grad = torch.tensor(g, dtype=dtype)
+            opt.step()
+    finally:
+        adam.uniform_adam_rows_ = real
+    assert len(calls) == len(grads)
+    want = _reference_steps([p0], [[g] for g in grads], 1e-2, 0.8, 0.95, 1e-8, max_step)[0]
+    tol = dict(rtol=1e-12, atol=1e-14) if dtype == torch.float64 else dict(rtol=2e-6, atol=2e-7)
+    np.testing.assert_allclose(x.detach().double().numpy(), want, **tol)
+    # the state holds what the torch path keeps (a checkpoint resumes on either path)
+    st = opt.state[x]
+    assert st["step"] == len(grads)
+    m = np.zeros((300, 3))
+    for g in grads:
+        m = 0.8 * m + 0.2 * g
+    np.testing.assert_allclose(st["exp_avg"].double().numpy(), m, **tol)
+
+
 def test_shared_normaliser_keeps_relative_step_sizes(rng):
     # Adam would move both entries by ~lr; the shared normaliser keeps their 1000:1 ratio.
     x = torch.zeros(2, dtype=torch.float64, requires_grad=True)

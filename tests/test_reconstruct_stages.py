@@ -730,6 +730,36 @@ def test_min_dihedral_matches_the_tet_mesh_and_the_sliver_guard_puts_back_the_mo
         assert float(min_dihedral_deg(x_new, T).min()) >= min(10.0, float(min_dihedral_deg(x_old, T).min())) - 1e-9
 
 
+def test_geometry_steps_are_the_same_with_the_tet_energies_run_ahead_on_a_second_thread(sphere_scene, monkeypatch):
+    """With two CPU threads a step runs the tet energies' kernels on a second thread while
+    the rasteriser runs (GeometryBlock._ahead); the graph is built on the caller's thread
+    as before, so the vertices come out bit for bit as with one thread."""
+    from holowarp.device import cpu_threads, set_cpu_threads
+    from holowarp.energies import TetEnergies
+    from holowarp.stages.geometry import GeometryBlock
+
+    ds, _ = sphere_scene
+    ahead = []
+    real = TetEnergies.prepare_biharmonic_and_inversion
+    monkeypatch.setattr(TetEnergies, "prepare_biharmonic_and_inversion",
+                        lambda self, *a, **k: (ahead.append(1), real(self, *a, **k))[1])
+    before = cpu_threads()
+    runs = {}
+    try:
+        for threads in (1, 2):
+            set_cpu_threads(threads)
+            model = _grid_carved_model(ds, 8)
+            blk = GeometryBlock(model, ds, ds.train_idx, GeometryConfig(lr_start=4e-3, lr_end=2e-3), block_iters=6,
+                                total_mesh_iters=6)
+            logs = [{k: float(v) for k, v in blk.step(k, k, seed=2).items()} for k in range(6)]
+            runs[threads] = (model.vertices.detach().clone(), logs, len(ahead))
+    finally:
+        set_cpu_threads(before)
+    assert runs[1][2] == 0 and runs[2][2] == 5  # every step but the block's first ran ahead
+    assert torch.equal(runs[1][0], runs[2][0]) and runs[1][1] == runs[2][1]
+    assert not torch.equal(runs[1][0], _grid_carved_model(ds, 8).vertices)  # the steps moved it
+
+
 def test_hc_floor_keeps_the_hc_term_in_the_loss_where_lam_has_decayed_to_zero(sphere_scene):
     from holowarp.stages.geometry import GeometryBlock
 

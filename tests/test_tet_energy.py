@@ -376,7 +376,7 @@ def test_hand_written_backward_passes_warp_gradcheck(setup):
         if tape is not None:
 
             def backward():
-                wp.launch(K.biharmonic_backward_kernel, M, inputs=[tets_wp, adj_wp, w_wp, LF, dm_wp, total.grad],
+                wp.launch(K.biharmonic_backward_kernel, M, inputs=[tets_wp, adj_wp, LF, dm_wp, total.grad],
                           outputs=[x_wp.grad], record_tape=False)
 
             tape.record_func(backward, [x_wp, total])

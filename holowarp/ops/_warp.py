@@ -73,6 +73,10 @@ class StepCache(LaunchCache):
         super().__init__()
         self._buffers: dict = {}
         self._views: dict = {}
+        #: work a caller ran ahead at a site (e.g. on another thread), for the op that uses
+        #: its buffers to find and take once: ``{site: key of the inputs it ran on}``
+        #: (:func:`holowarp.ops.tet_energy.prepare_tet_energies`).
+        self.marks: dict = {}
 
     def buffer(self, site: str, shape, dtype: torch.dtype, device, *, zero: bool = False) -> torch.Tensor:
         """A tensor of ``shape``/``dtype`` on ``device`` owned by ``site`` (zeroed when

@@ -29,6 +29,8 @@ __all__ = [
     "biharmonic_energy",
     "inversion_penalty",
     "tet_energies",
+    "prepare_tet_energies",
+    "prepare_hc_laplacian",
     "signed_volumes",
     "tet_mean",
     "revert_floor_crossings",
@@ -158,13 +160,13 @@ class _Biharmonic(torch.autograd.Function):
                 K_.biharmonic_forward_kernel, dim=m,
                 inputs=[_mat(F, M), adj_wp, to_wp(weights)], outputs=[_mat(LF, M), to_wp(energy)], device=dev,
             )
-        ctx.save_for_backward(tets, adjacency, weights, LF, dm_inv)
+        ctx.save_for_backward(tets, adjacency, LF, dm_inv)  # LF holds w (L F)
         ctx.num_vertices = x.shape[0]
         return energy.sum()
 
     @staticmethod
     def backward(ctx, grad_E):
-        tets, adjacency, weights, LF, dm_inv = ctx.saved_tensors
+        tets, adjacency, LF, dm_inv = ctx.saved_tensors
         T, V, M = _types(LF)
         grad_x = torch.zeros((ctx.num_vertices, 3), dtype=LF.dtype, device=LF.device)
         g = grad_E.reshape(1).to(LF.dtype).contiguous()
@@ -172,7 +174,7 @@ class _Biharmonic(torch.autograd.Function):
             _launch(
                 K_.biharmonic_backward_kernel,
                 dim=tets.shape[0],
-                inputs=[_i(tets, wp.vec4i), _i(adjacency, wp.vec4i), to_wp(weights), _mat(LF, M), _mat(dm_inv, M), to_wp(g)],
+                inputs=[_i(tets, wp.vec4i), _i(adjacency, wp.vec4i), _mat(LF, M), _mat(dm_inv, M), to_wp(g)],
                 outputs=[_vec(grad_x, V)],
                 device=wp_device(LF),
             )
@@ -256,58 +258,78 @@ def inversion_penalty(x, tets, dm_inv, p: float = 2.0) -> torch.Tensor:
 # --- fused pass: bi-harmonic + inversion from one F ---------------------------------------
 
 
+def _tet_pass(x, tets, dm_inv, adjacency, weights, p: float, need: bool, c):
+    """The kernels of :func:`tet_energies` into ``c``'s buffers ``te.*``: F, w (L F), the
+    per-tet energies and, when ``need``, the gradients of both sums (the bi-harmonic one
+    seeded with 1: the backward pass only scales them, so all the work can run ahead of
+    it). Returns ``(bi-harmonic gradient, inversion gradient, bi-harmonic energies,
+    inversion energies)``; the gradients are (1, 3) placeholders without ``need``."""
+    T, V, M = _types(x)
+    dev = wp_device(x)
+    m = tets.shape[0]
+    F = c.buffer("te.F", (m, 3, 3), x.dtype, x.device)
+    LF = c.buffer("te.LF", (m, 3, 3), x.dtype, x.device)
+    e_bih = c.buffer("te.e_bih", (m,), x.dtype, x.device)
+    e_inv = c.buffer("te.e_inv", (m,), x.dtype, x.device)
+    g_shape = x.shape if need else (1, 3)
+    g_inv = c.buffer("te.g_inv", g_shape, x.dtype, x.device, zero=True)
+    g_bih = c.buffer("te.g_bih", g_shape, x.dtype, x.device, zero=True)
+    tets_wp, F_wp, LF_wp = c.view("te.tets", tets, wp.vec4i), c.view("te.F", F, M), c.view("te.LF", LF, M)
+    adj_wp, dm_wp = c.view("te.adjacency", adjacency, wp.vec4i), c.view("te.dm_inv", dm_inv, M)
+    with torch_stream(x):
+        _launch(K_.tet_pass_kernel, dim=m, inputs=[c.view("te.x", x.detach(), V), tets_wp, dm_wp, T(p), int(need)],
+                outputs=[F_wp, c.view("te.e_inv", e_inv), c.view("te.g_inv", g_inv, V)], device=dev,
+                cache=c, site="te.tet_pass")
+        _launch(K_.biharmonic_forward_kernel, dim=m, inputs=[F_wp, adj_wp, c.view("te.weights", weights)],
+                outputs=[LF_wp, c.view("te.e_bih", e_bih)], device=dev, cache=c, site="te.biharmonic_forward")
+        if need:
+            one = c.buffer("te.one", (1,), x.dtype, x.device).fill_(1.0)
+            _launch(K_.biharmonic_backward_kernel, dim=m, inputs=[tets_wp, adj_wp, LF_wp, dm_wp, c.view("te.one", one)],
+                    outputs=[c.view("te.g_bih", g_bih, V)], device=dev, cache=c, site="te.biharmonic_backward")
+    return g_bih, g_inv, e_bih, e_inv
+
+
+def _pass_key(x, tets, p: float, need: bool):
+    return (x.data_ptr(), tuple(x.shape), x.dtype, tets.data_ptr(), tets.shape[0], float(p), bool(need))
+
+
 class _TetEnergies(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, tets, dm_inv, adjacency, weights, p, cache):
-        T, V, M = _types(x)
-        dev = wp_device(x)
-        m, c = tets.shape[0], cache
-        F = c.buffer("te.F", (m, 3, 3), x.dtype, x.device)
-        LF = c.buffer("te.LF", (m, 3, 3), x.dtype, x.device)
-        e_bih = c.buffer("te.e_bih", (m,), x.dtype, x.device)
-        e_inv = c.buffer("te.e_inv", (m,), x.dtype, x.device)
+        c = cache
         need = bool(ctx.needs_input_grad[0])  # grad mode is off inside forward
-        g_inv = c.buffer("te.g_inv", x.shape if need else (1, 3), x.dtype, x.device, zero=True)
-        tets_wp, F_wp = c.view("te.tets", tets, wp.vec4i), c.view("te.F", F, M)
-        with torch_stream(x):
-            _launch(K_.tet_pass_kernel, dim=m,
-                    inputs=[c.view("te.x", x.detach(), V), tets_wp, c.view("te.dm_inv", dm_inv, M), T(p), int(need)],
-                    outputs=[F_wp, c.view("te.e_inv", e_inv), c.view("te.g_inv", g_inv, V)], device=dev,
-                    cache=c, site="te.tet_pass")
-            _launch(K_.biharmonic_forward_kernel, dim=m,
-                    inputs=[F_wp, c.view("te.adjacency", adjacency, wp.vec4i), c.view("te.weights", weights)],
-                    outputs=[c.view("te.LF", LF, M), c.view("te.e_bih", e_bih)], device=dev,
-                    cache=c, site="te.biharmonic_forward")
-        ctx.save_for_backward(tets, adjacency, weights, LF, dm_inv, g_inv)
-        ctx.num_vertices = x.shape[0]
-        ctx.cache = c
+        # A pass that prepare_tet_energies ran for these arrays (the geometry step runs it on
+        # another thread while the rasteriser works) is taken as it is, once.
+        marks = getattr(c, "marks", {})
+        if marks.pop("te.pass", None) == _pass_key(x, tets, p, need):
+            m, g_shape = tets.shape[0], x.shape if need else (1, 3)
+            g_bih, g_inv, e_bih, e_inv = (c.buffer("te.g_bih", g_shape, x.dtype, x.device),
+                                          c.buffer("te.g_inv", g_shape, x.dtype, x.device),
+                                          c.buffer("te.e_bih", (m,), x.dtype, x.device),
+                                          c.buffer("te.e_inv", (m,), x.dtype, x.device))
+        else:
+            g_bih, g_inv, e_bih, e_inv = _tet_pass(x, tets, dm_inv, adjacency, weights, p, need, c)
+        ctx.save_for_backward(g_bih, g_inv)
         return e_bih.sum(), e_inv.sum()
 
     @staticmethod
-    def backward(ctx, g_bih, g_inv_out):
-        tets, adjacency, weights, LF, dm_inv, g_inv = ctx.saved_tensors
-        T, V, M = _types(LF)
-        c = ctx.cache
-        grad_x = c.buffer("te.grad_x", (ctx.num_vertices, 3), LF.dtype, LF.device, zero=True)
-        if g_bih is not None:
-            g = c.buffer("te.g_bih", (1,), LF.dtype, LF.device).copy_(g_bih.reshape(1))
-            with torch_stream(LF):
-                _launch(K_.biharmonic_backward_kernel, dim=tets.shape[0],
-                        inputs=[c.view("te.tets", tets, wp.vec4i), c.view("te.adjacency", adjacency, wp.vec4i),
-                                c.view("te.weights", weights), c.view("te.LF", LF, M), c.view("te.dm_inv", dm_inv, M),
-                                c.view("te.g_bih", g)],
-                        outputs=[c.view("te.grad_x", grad_x, V)], device=wp_device(LF), cache=c,
-                        site="te.biharmonic_backward")
-        if g_inv_out is not None and g_inv.shape == grad_x.shape:
-            grad_x += g_inv * g_inv_out
-        # the buffer is this site's again at the next step; autograd may keep what it returns
-        return grad_x.clone(), None, None, None, None, None, None
+    def backward(ctx, g_bih_out, g_inv_out):
+        # Both gradients were computed with the energies; the chain rule only scales them.
+        g_bih, g_inv = ctx.saved_tensors
+        grad = None
+        for g, scale in ((g_bih, g_bih_out), (g_inv, g_inv_out)):
+            if scale is not None:
+                grad = g * scale if grad is None else grad + g * scale
+        return grad, None, None, None, None, None, None
 
 
 def tet_energies(x, tets, dm_inv, adjacency, weights, p: float = 2.0, *, cache=FRESH):
     """``(biharmonic_energy(...), inversion_penalty(..., p))`` from one pass over the tets:
     F and det F are computed once (kernel ``tet_pass_kernel``), the bi-harmonic Laplacian
-    reads that F. Same values and gradients as the two functions called separately.
+    reads that F. When ``x`` wants a gradient, both sums' gradients are computed with the
+    values (the bi-harmonic one seeded with 1, kernel ``biharmonic_backward_kernel``) and
+    the backward pass only scales them. Same values and gradients as the two functions
+    called separately.
 
     ``cache``: a :class:`holowarp.ops._warp.StepCache` for a caller that repeats this on the
     same arrays (the geometry step); its buffers hold what the backward pass reads, so run
@@ -318,6 +340,25 @@ def tet_energies(x, tets, dm_inv, adjacency, weights, p: float = 2.0, *, cache=F
         raise ValueError(f"tet_energies: p must be >= 1, got {p}")
     return _TetEnergies.apply(x.contiguous(), _int32(tets), dm_inv.to(x.dtype).contiguous(),
                               _int32(adjacency), weights.to(x.dtype).contiguous(), p, cache)
+
+
+def prepare_tet_energies(x, tets, dm_inv, adjacency, weights, p: float = 2.0, *, cache, need: bool = True) -> None:
+    """Run :func:`tet_energies`' kernels (the energies and their gradients) now, into
+    ``cache`` (a :class:`holowarp.ops._warp.StepCache`), so that the next
+    :func:`tet_energies` call with the same arrays, ``p`` and gradient need only sums
+    their results and its backward pass only scales the gradients: the geometry
+    step runs this on a second thread while the rasteriser runs. No autograd here: the
+    graph is built by that call, on the caller's thread, in the order it always was. The
+    arguments are those of :func:`tet_energies` (converted the same way); ``need``: whether
+    that call will want the gradient (``x.requires_grad`` with grad mode on)."""
+    _check_x(x)
+    if not hasattr(cache, "marks"):
+        raise TypeError("prepare_tet_energies: cache must be a holowarp.ops._warp.StepCache")
+    x, tets = x.contiguous(), _int32(tets)
+    with torch.no_grad():
+        _tet_pass(x, tets, dm_inv.to(x.dtype).contiguous(), _int32(adjacency), weights.to(x.dtype).contiguous(),
+                  float(p), bool(need), cache)
+    cache.marks["te.pass"] = _pass_key(x, tets, p, need)
 
 
 def _int32(t: torch.Tensor) -> torch.Tensor:
@@ -568,6 +609,38 @@ def _hc_umbrella(x, xo, topo: HCTopology, alpha: float, p, b, nacc, *, cache=FRE
     return p_wp, b_wp, n_wp, x_wp
 
 
+def _hc_pass(x, xo, topo: HCTopology, lam_cond: float, alpha: float, beta: float, need: bool, c):
+    """The kernels of :func:`hc_laplacian_energy` into ``c``'s buffers ``hc.*``; returns the
+    per-vertex energies (S,) and the gradient (N, 3; a (1, 3) placeholder without ``need``)."""
+    T, V, M = _types(x)
+    dev = wp_device(x)
+    S = topo.num_surface_vertices
+    p = c.buffer("hc.p", (S, 3), x.dtype, x.device)
+    b = c.buffer("hc.b", (S, 3), x.dtype, x.device)
+    nacc = c.buffer("hc.nacc", (S, 3), x.dtype, x.device, zero=True)
+    energy = c.buffer("hc.energy", (S,), x.dtype, x.device)
+    grad_x = c.buffer("hc.grad_x", x.shape if need else (1, 3), x.dtype, x.device, zero=True)
+    with torch.no_grad():
+        p_wp, b_wp, n_wp, x_wp = _hc_umbrella(x, xo, topo, alpha, p, b, nacc, cache=c)
+        sid, off, nid, _, _ = topo.views()
+        with torch_stream(x):
+            _launch(K_.hc_target_energy_kernel, dim=S,
+                    inputs=[p_wp, b_wp, off, nid, n_wp, T(beta), x_wp, sid, T(float(lam_cond)), int(need)],
+                    outputs=[c.view("hc.energy", energy), c.view("hc.grad_x", grad_x, V)], device=dev,
+                    cache=c, site="hc.target_energy")
+    return energy, grad_x
+
+
+def _hc_inputs(x, x_orig):
+    xd = x.detach().contiguous()
+    return xd, (xd if x_orig is None else x_orig.detach().to(x.dtype).contiguous())
+
+
+def _hc_key(xd, xo, topo, lam_cond, alpha, beta, need):
+    return (xd.data_ptr(), tuple(xd.shape), xd.dtype, xo.data_ptr(), id(topo), float(lam_cond), float(alpha),
+            float(beta), bool(need))
+
+
 def hc_laplacian_energy(x, topo: HCTopology, lam_cond: float, *, x_orig=None, alpha: float = 0.0,
                         beta: float = 0.5, cache=FRESH) -> torch.Tensor:
     """:func:`hc_energy` of the targets and normals :func:`hc_targets` gives, the last pass of
@@ -575,32 +648,35 @@ def hc_laplacian_energy(x, topo: HCTopology, lam_cond: float, *, x_orig=None, al
     target or normal arrays. The same value and gradient, bit for bit (tests/test_tet_energy.py).
 
     ``cache``: a :class:`holowarp.ops._warp.StepCache` for a caller that repeats this on the
-    same arrays; the gradient the result carries lives in its buffer until the next call."""
+    same arrays; the gradient the result carries lives in its buffer until the next call.
+    Work :func:`prepare_hc_laplacian` ran ahead into it for the same inputs is taken, once."""
     _check_x(x)
-    T, V, M = _types(x)
-    dev, c = wp_device(x), cache
+    c = cache
+    xd, xo = _hc_inputs(x, x_orig)
     S = topo.num_surface_vertices
-    xc = x.contiguous()
-    xd = xc.detach()
-    xo = xd if x_orig is None else x_orig.detach().to(x.dtype).contiguous()
-    p = c.buffer("hc.p", (S, 3), x.dtype, x.device)
-    b = c.buffer("hc.b", (S, 3), x.dtype, x.device)
-    nacc = c.buffer("hc.nacc", (S, 3), x.dtype, x.device, zero=True)
-    energy = c.buffer("hc.energy", (S,), x.dtype, x.device)
     need = x.requires_grad and torch.is_grad_enabled()
-    grad_x = c.buffer("hc.grad_x", xd.shape if need else (1, 3), x.dtype, x.device, zero=True)
-    with torch.no_grad():
-        p_wp, b_wp, n_wp, x_wp = _hc_umbrella(xd, xo, topo, alpha, p, b, nacc, cache=c)
-        sid, off, nid, _, _ = topo.views()
-        with torch_stream(x):
-            _launch(K_.hc_target_energy_kernel, dim=S,
-                    inputs=[p_wp, b_wp, off, nid, n_wp, T(beta), x_wp, sid, T(float(lam_cond)), int(need)],
-                    outputs=[c.view("hc.energy", energy), c.view("hc.grad_x", grad_x, V)], device=dev,
-                    cache=c, site="hc.target_energy")
+    if getattr(c, "marks", {}).pop("hc.pass", None) == _hc_key(xd, xo, topo, lam_cond, alpha, beta, need):
+        energy = c.buffer("hc.energy", (S,), x.dtype, x.device)
+        grad_x = c.buffer("hc.grad_x", xd.shape if need else (1, 3), x.dtype, x.device)
+    else:
+        energy, grad_x = _hc_pass(xd, xo, topo, lam_cond, alpha, beta, need, c)
     value = energy.sum()
     if not need:
         return value
-    return _fused(value, [(xc, grad_x)])
+    return _fused(value, [(x.contiguous(), grad_x)])
+
+
+def prepare_hc_laplacian(x, topo: HCTopology, lam_cond: float, *, x_orig=None, alpha: float = 0.0,
+                         beta: float = 0.5, cache, need: bool = True) -> None:
+    """Run :func:`hc_laplacian_energy`'s kernels now, into ``cache`` (a
+    :class:`holowarp.ops._warp.StepCache`), for its next call with the same inputs and
+    gradient need to take (see :func:`prepare_tet_energies`, whose thread it shares)."""
+    _check_x(x)
+    if not hasattr(cache, "marks"):
+        raise TypeError("prepare_hc_laplacian: cache must be a holowarp.ops._warp.StepCache")
+    xd, xo = _hc_inputs(x, x_orig)
+    _hc_pass(xd, xo, topo, lam_cond, alpha, beta, need, cache)
+    cache.marks["hc.pass"] = _hc_key(xd, xo, topo, lam_cond, alpha, beta, need)
 
 
 def hc_energy(x, topo: HCTopology, target, normal, lam_cond: float) -> torch.Tensor:

@@ -41,6 +41,7 @@ balance does not depend on the object's size or the mesh resolution.
 from __future__ import annotations
 
 import time
+from concurrent.futures import wait
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,6 +145,10 @@ def revert_sliver_moves(x_new: torch.Tensor, x_old: torch.Tensor, tets: torch.Te
         return back
 
 
+#: The thread :meth:`GeometryBlock._ahead` runs work on (made at first use).
+_AHEAD = None
+
+
 @dataclass
 class GeometryState:
     """What persists across blocks (and checkpoints): the global mesh-iteration counter."""
@@ -216,6 +221,7 @@ class GeometryBlock:
         # Every step works on the same arrays: buffers, Warp views and launches are kept
         # (about 20 launches a step; issue 17's loop overhead).
         self.step_cache = StepCache()
+        self._warm = False  # a step has run: the energies' rest shape and kernels are in place
         self.reverted = 0
         self.depth_maps = depth_maps if config.depth_pull > 0 else None
         self.targets: dict = {}
@@ -300,19 +306,40 @@ class GeometryBlock:
                 self.cache[view] = (n.to(torch.float16).contiguous(), out["alpha"].to(torch.float16).contiguous())
         return self.cache[view]
 
-    def view_losses(self, out: dict, view: int):
+    def view_losses(self, out: dict, view: int) -> torch.Tensor:
         """``(L_mask, L_norm, L_prior)`` of the mesh render ``out`` (:func:`holowarp.ops.rasterize_mesh`)
-        in ``view``, 0-dim tensors from one fused pass (:func:`holowarp.ops.mesh_losses.mesh_view_losses`):
+        in ``view`` as a (3,) tensor from one fused pass (:func:`holowarp.ops.mesh_losses.mesh_view_losses`):
         the silhouette L1 against the mask, the mean ``1 - cos`` against the frozen surfels'
         normals where both cover the pixel, and against the dataset's normal map (``L_prior``,
-        None without normal maps or with ``w_prior`` 0)."""
+        0 without normal maps or with ``w_prior`` 0)."""
         from holowarp.ops.mesh_losses import mesh_view_losses
 
         n_gs, a_gs = self.surfel_normals(view)
         prior = self.normals[view] if self.normals is not None else None
-        l_mask, l_norm, l_prior = mesh_view_losses(out["alpha"], out["normal"], self.masks[view], n_gs, a_gs,
-                                                   prior, cache=self.step_cache).unbind()
-        return l_mask, l_norm, (l_prior if prior is not None else None)
+        return mesh_view_losses(out["alpha"], out["normal"], self.masks[view], n_gs, a_gs, prior,
+                                cache=self.step_cache)
+
+    def _ahead(self, work):
+        """``work()`` started on a second thread (a future), or None where that does not pay:
+        on a device other than the CPU (launches are asynchronous there), on one CPU thread
+        (:func:`holowarp.device.cpu_threads`: another run shares the cores) and in a block's
+        first step, which captures what the later ones share.
+
+        The tet energies' and the HC term's kernels, gradients included (about a third of a
+        step's own work, issue 17), run there while the rasteriser's serial set-up runs
+        here; the autograd graph is still built on this thread, in the same order, so the
+        results do not depend on it."""
+        from holowarp.device import cpu_threads
+
+        if not self._warm or self.x.device.type != "cpu" or cpu_threads() < 2:
+            self._warm = True
+            return None
+        global _AHEAD
+        if _AHEAD is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            _AHEAD = ThreadPoolExecutor(max_workers=1, thread_name_prefix="holowarp-ahead")
+        return _AHEAD.submit(work)
 
     def view_of(self, t: int, seed: int) -> int:
         """The training view of global mesh iteration ``t``: drawn from ``default_rng([seed, 1, t])``."""
@@ -331,23 +358,34 @@ class GeometryBlock:
             g["lr"] = lr
         view = self.view_of(t, seed)
         H, W = ds.height, ds.width
-        out = rasterize_mesh(x, self.faces, ds.viewmats[view], ds.K[view], W, H)
-        l_mask, l_norm, l_prior = self.view_losses(out, view)
-        lam = mesh_lambda(t, self.total)
-        lam_cond = 1.0 if (not cfg.two_stage_hc or k >= self.block_iters // 2) else 0.0
         c = self.step_cache
-        l_hc = en.hc_laplacian(x, self.bf_np, lam_cond=lam_cond, cache=c) / self.mean_edge**2
         p0, p1 = cfg.barrier_p
-        l_w, l_inv = en.biharmonic_and_inversion(x, p=p0 + (p1 - p0) * (t / max(self.total - 1, 1)), cache=c)
-        if cfg.hc_floor > lam:
-            reg = cfg.hc_floor * cfg.c_hc * l_hc + lam * cfg.c_w * l_w
-        else:  # the paper's form, bit for bit (tests/test_regression.py records its meshes)
-            reg = lam * (cfg.c_hc * l_hc + cfg.c_w * l_w)
-        loss = cfg.w_mask * l_mask + cfg.w_norm * l_norm + reg + cfg.c_barrier * l_inv
-        if l_prior is not None:
-            loss = loss + cfg.w_prior * l_prior
-        self.opt.zero_grad(set_to_none=True)
-        loss.backward()
+        p_inv = p0 + (p1 - p0) * (t / max(self.total - 1, 1))
+        lam_cond = 1.0 if (not cfg.two_stage_hc or k >= self.block_iters // 2) else 0.0
+        ahead = self._ahead(lambda: (en.prepare_biharmonic_and_inversion(x, p_inv, cache=c),
+                                     en.prepare_hc_laplacian(x, self.bf_np, lam_cond=lam_cond, cache=c)))
+        try:
+            out = rasterize_mesh(x, self.faces, ds.viewmats[view], ds.K[view], W, H)
+            l_view = self.view_losses(out, view)
+        finally:  # the other thread is done with the step's buffers before anything else runs
+            if ahead is not None:
+                wait([ahead])
+        if ahead is not None:
+            ahead.result()  # its error, if it raised one
+        lam = mesh_lambda(t, self.total)
+        l_hc = en.hc_laplacian(x, self.bf_np, lam_cond=lam_cond, cache=c)  # squared metres
+        l_w, l_inv = en.biharmonic_and_inversion(x, p=p_inv, cache=c)
+        # L_geo's weights: L_HC is measured in squared mean edges, so its weight takes 1 / mean_edge^2.
+        w_hc = (cfg.hc_floor if cfg.hc_floor > lam else lam) * cfg.c_hc / self.mean_edge**2
+        has_prior = self.normals is not None
+        coef = torch.tensor([cfg.w_mask, cfg.w_norm, cfg.w_prior if has_prior else 0.0, w_hc, lam * cfg.c_w,
+                             cfg.c_barrier], dtype=x.dtype, device=x.device)
+        x.grad = None
+        # One backward from the terms with their weights as the seeds: no graph of scalar products and sums.
+        torch.autograd.backward([l_view, l_hc, l_w, l_inv], [coef[:3], coef[3], coef[4], coef[5]])
+        with torch.no_grad():
+            terms = torch.cat([l_view, torch.stack([l_hc, l_w, l_inv])])
+            loss = terms @ coef
         x_old = c.buffer("step.x_old", x.shape, x.dtype, x.device).copy_(x.detach())
         self.opt.step()
         if self.depth_maps is not None and self.depth_target(view) is not None:
@@ -359,10 +397,11 @@ class GeometryBlock:
                 self.pulled += int((x.data != x_mid).any(dim=1).sum())
         self.reverted = self.reverted + revert_inverting_moves(x.data, x_old, self.tets32, floor=self.floor,
                                                                  incidence=self.incidence, cache=c)
-        terms = {"loss": loss, "mask": l_mask, "norm": l_norm, "hc": l_hc, "w": l_w, "inv": l_inv}
-        if l_prior is not None:
-            terms["prior"] = l_prior
-        return {**{k_: v.detach() for k_, v in terms.items()}, "lam": lam, "lam_cond": lam_cond}
+        out = {"loss": loss, "mask": terms[0], "norm": terms[1], "hc": terms[3] / self.mean_edge**2, "w": terms[4],
+               "inv": terms[5]}
+        if has_prior:
+            out["prior"] = terms[2]
+        return {**out, "lam": lam, "lam_cond": lam_cond}
 
     def finish(self) -> int:
         """Stop optimising the vertices; returns the number of inverted tets (volume <= 0)."""
