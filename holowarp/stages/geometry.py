@@ -222,6 +222,10 @@ class GeometryBlock:
         # (about 20 launches a step; issue 17's loop overhead).
         self.step_cache = StepCache()
         self._warm = False  # a step has run: the energies' rest shape and kernels are in place
+        #: L_geo's weights of (L_mask, L_norm, L_prior, L_HC, L_w, L_inv); a step sets the two
+        #: that follow lam(t)
+        self.coef = torch.tensor([config.w_mask, config.w_norm, config.w_prior if self.normals is not None else 0.0,
+                                  0.0, 0.0, config.c_barrier], dtype=self.x.dtype, device=dev)
         self.reverted = 0
         self.depth_maps = depth_maps if config.depth_pull > 0 else None
         self.targets: dict = {}
@@ -378,8 +382,9 @@ class GeometryBlock:
         # L_geo's weights: L_HC is measured in squared mean edges, so its weight takes 1 / mean_edge^2.
         w_hc = (cfg.hc_floor if cfg.hc_floor > lam else lam) * cfg.c_hc / self.mean_edge**2
         has_prior = self.normals is not None
-        coef = torch.tensor([cfg.w_mask, cfg.w_norm, cfg.w_prior if has_prior else 0.0, w_hc, lam * cfg.c_w,
-                             cfg.c_barrier], dtype=x.dtype, device=x.device)
+        coef = self.coef.clone()  # written on the device: no upload per step
+        coef[3] = w_hc
+        coef[4] = lam * cfg.c_w
         x.grad = None
         # One backward from the terms with their weights as the seeds: no graph of scalar products and sums.
         torch.autograd.backward([l_view, l_hc, l_w, l_inv], [coef[:3], coef[3], coef[4], coef[5]])
