@@ -72,12 +72,7 @@ class UniformAdam(torch.optim.Optimizer):
             for p in params:
                 if p.grad.is_sparse:
                     raise RuntimeError("UniformAdam does not support sparse gradients")
-                st = self.state[p]
-                if not st:
-                    st["step"] = 0
-                    st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                    st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                st["step"] += 1
+                st = self._state(p)
                 t = st["step"]
                 g = p.grad
                 st["exp_avg"].mul_(b1).add_(g, alpha=1.0 - b1)
@@ -98,6 +93,20 @@ class UniformAdam(torch.optim.Optimizer):
                 p.sub_(upd)
         return loss
 
+    def _state(self, p: torch.Tensor) -> dict:
+        """``p``'s state with its step count advanced: ``step``, and the moments ``exp_avg``
+        and ``exp_avg_sq`` (zeros at the first step), contiguous (the Warp path writes them
+        through views)."""
+        st = self.state[p]
+        if not st:
+            st["step"] = 0
+            st["exp_avg"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
+            st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
+        for k in ("exp_avg", "exp_avg_sq"):
+            if not st[k].is_contiguous():  # a loaded state may hold other strides
+                st[k] = st[k].contiguous()
+        st["step"] += 1
+        return st
 
     def _rows_step(self, p: torch.Tensor, group: dict) -> bool:
         """The step of a group whose one parameter is (N, 3) rows (the geometry stage's
@@ -107,12 +116,7 @@ class UniformAdam(torch.optim.Optimizer):
 
         if not rows_supported(p):
             return False
-        st = self.state[p]
-        if not st:
-            st["step"] = 0
-            st["exp_avg"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
-            st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.contiguous_format)
-        st["step"] += 1
+        st = self._state(p)
         if self._cache is None:
             from holowarp.ops._warp import StepCache
 
