@@ -746,7 +746,7 @@ class TopologyConfig:
             raise ValueError(f"TopologyConfig.depth_normals_grazing must be a cosine in [0, 1), got "
                              f"{self.depth_normals_grazing!r}")
         for name in ("prune_in_front_tol", "prune_in_front_lid_tol", "prune_in_front_lid_gap"):
-            _check_mean_edges(self, name, none_ok=name == "prune_in_front_lid_tol")
+            _check_nonneg(self, name, none_ok=name == "prune_in_front_lid_tol")
         if self.split_guard is not None and not (isinstance(self.split_guard, (int, float))
                                                  and 0.0 <= self.split_guard <= 1.0):
             raise ValueError(f"TopologyConfig.split_guard must be None or a fraction in [0, 1], got {self.split_guard!r}")
@@ -921,7 +921,7 @@ class GeometryConfig:
             raise ValueError(f"GeometryConfig.depth_pull_min_dihedral must be in [0, 70) degrees, got "
                              f"{self.depth_pull_min_dihedral!r}")
         for name in ("depth_pull_margin", "depth_pull_own_gap"):
-            _check_mean_edges(self, name)
+            _check_nonneg(self, name)
 
 
 @dataclass(frozen=True)
@@ -975,7 +975,7 @@ class CleanupConfig:
                              f"{self.blunt_max_move!r} and {self.blunt_rounds!r}")
 
 
-def _check_mean_edges(cfg, name: str, *, none_ok: bool = False, unit: str = "mean edges") -> None:
+def _check_nonneg(cfg, name: str, *, none_ok: bool = False, unit: str = "mean edges") -> None:
     """Refuse, by name, a setting of ``cfg`` that is not a finite number >= 0 (or None, where
     ``none_ok``); ``unit`` names its unit in the message (the depth settings' mean edge
     lengths by default)."""
@@ -1247,7 +1247,7 @@ class ImproveConfig:
             raise ValueError(f"thin_fraction must be None or lie in [0, 1], got {self.thin_fraction}")
         if self.refit_steps < 0:
             raise ValueError(f"refit_steps must be >= 0, got {self.refit_steps}")
-        _check_mean_edges(self, "refit_w_normal", none_ok=True, unit="a loss weight")
+        _check_nonneg(self, "refit_w_normal", none_ok=True, unit="a loss weight")
         n = self.refit_steps_without_maps
         if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 0):
             raise ValueError(f"refit_steps_without_maps must be None or an integer >= 0, got {n!r}")
@@ -1351,15 +1351,14 @@ class PolishConfig:
         after_w_surfels: on data without normal maps, the second fit's prior weight against
             the surfels' rendered normals after their refit
             (:class:`holowarp.stages.polish.SurfelNormals`, the same chord; 0: masks alone),
-            which stand in for the maps as they do for §6's
-            ``L_norm``; the first fit, before §7b and unguarded by ``after_angle_floor``,
+            which stand in for the maps as they do for §6's ``L_norm``; the first fit, before §7b and unguarded by ``after_angle_floor``,
             keeps the masks alone (a surfel prior there took lego's worst dihedral angle from
             11.3° to 8.7-9.5°). Finishing one lego run again from its checkpoint (fast, 128²,
             the refit at ``ImproveConfig.refit_w_normal`` 0.5, 200 steps;
             mesh_surfel_normal_cos / mask IoU / held-out PSNR): 0 -> 0.878 / 0.9784 / 27.70
-            dB; 0.008 -> 0.888 / 0.9779 /
-            27.60; 0.05 -> 0.890 / 0.9775 / 27.55; 0.2 -> 0.891 / 0.9763 / 27.55; 0.05 with
-            120 steps -> 0.890. §7b's worst angle (11.3°) holds in each.
+            dB; 0.008 -> 0.888 / 0.9779 / 27.60; 0.05 -> 0.890 / 0.9775 / 27.55; 0.2 -> 0.891
+            / 0.9763 / 27.55; 0.05 with 120 steps -> 0.890. §7b's worst angle (11.3°) holds
+            in each.
         refine_bend, refine_factor: before the first fit, the tets holding a boundary face
             that meets a neighbour at a boundary edge bent by ``refine_bend = (lo, hi)``
             degrees (the angle between the two faces' normals, ``lo < bend < hi``) are

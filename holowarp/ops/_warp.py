@@ -73,10 +73,19 @@ class StepCache(LaunchCache):
         super().__init__()
         self._buffers: dict = {}
         self._views: dict = {}
-        #: work a caller ran ahead at a site (e.g. on another thread), for the op that uses
-        #: its buffers to find and take once: ``{site: key of the inputs it ran on}``
-        #: (:func:`holowarp.ops.tet_energy.prepare_tet_energies`).
-        self.marks: dict = {}
+        self._ahead: dict = {}
+
+    def put_ahead(self, site: str, key, result) -> None:
+        """Keep ``result``, work a caller ran ahead for ``site`` (e.g. on another thread),
+        computed from inputs that ``key`` identifies
+        (:func:`holowarp.ops.tet_energy.prepare_tet_energies`)."""
+        self._ahead[site] = (key, result)
+
+    def take_ahead(self, site: str, key):
+        """The result :meth:`put_ahead` kept for ``site`` if it came from the inputs ``key``
+        identifies, else None; either way the site's entry is gone (a result is taken once)."""
+        hit = self._ahead.pop(site, None)
+        return hit[1] if hit is not None and hit[0] == key else None
 
     def buffer(self, site: str, shape, dtype: torch.dtype, device, *, zero: bool = False) -> torch.Tensor:
         """A tensor of ``shape``/``dtype`` on ``device`` owned by ``site`` (zeroed when
@@ -118,6 +127,10 @@ class _Fresh:
     @staticmethod
     def launch(site, kernel, dim, inputs=(), outputs=(), device=None):
         wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device)
+
+    @staticmethod
+    def take_ahead(site, key):
+        return None  # nothing is kept, so nothing was run ahead
 
 
 #: The cache of callers that have none: everything made anew on each call.

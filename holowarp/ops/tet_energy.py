@@ -300,15 +300,8 @@ class _TetEnergies(torch.autograd.Function):
         need = bool(ctx.needs_input_grad[0])  # grad mode is off inside forward
         # A pass that prepare_tet_energies ran for these arrays (the geometry step runs it on
         # another thread while the rasteriser works) is taken as it is, once.
-        marks = getattr(c, "marks", {})
-        if marks.pop("te.pass", None) == _pass_key(x, tets, p, need):
-            m, g_shape = tets.shape[0], x.shape if need else (1, 3)
-            g_bih, g_inv, e_bih, e_inv = (c.buffer("te.g_bih", g_shape, x.dtype, x.device),
-                                          c.buffer("te.g_inv", g_shape, x.dtype, x.device),
-                                          c.buffer("te.e_bih", (m,), x.dtype, x.device),
-                                          c.buffer("te.e_inv", (m,), x.dtype, x.device))
-        else:
-            g_bih, g_inv, e_bih, e_inv = _tet_pass(x, tets, dm_inv, adjacency, weights, p, need, c)
+        done = c.take_ahead("te.pass", _pass_key(x, tets, p, need))
+        g_bih, g_inv, e_bih, e_inv = done or _tet_pass(x, tets, dm_inv, adjacency, weights, p, need, c)
         ctx.save_for_backward(g_bih, g_inv)
         return e_bih.sum(), e_inv.sum()
 
@@ -352,13 +345,13 @@ def prepare_tet_energies(x, tets, dm_inv, adjacency, weights, p: float = 2.0, *,
     arguments are those of :func:`tet_energies` (converted the same way); ``need``: whether
     that call will want the gradient (``x.requires_grad`` with grad mode on)."""
     _check_x(x)
-    if not hasattr(cache, "marks"):
+    if not hasattr(cache, "put_ahead"):
         raise TypeError("prepare_tet_energies: cache must be a holowarp.ops._warp.StepCache")
     x, tets = x.contiguous(), _int32(tets)
     with torch.no_grad():
-        _tet_pass(x, tets, dm_inv.to(x.dtype).contiguous(), _int32(adjacency), weights.to(x.dtype).contiguous(),
-                  float(p), bool(need), cache)
-    cache.marks["te.pass"] = _pass_key(x, tets, p, need)
+        done = _tet_pass(x, tets, dm_inv.to(x.dtype).contiguous(), _int32(adjacency),
+                         weights.to(x.dtype).contiguous(), float(p), bool(need), cache)
+    cache.put_ahead("te.pass", _pass_key(x, tets, p, need), done)
 
 
 def _int32(t: torch.Tensor) -> torch.Tensor:
@@ -651,15 +644,10 @@ def hc_laplacian_energy(x, topo: HCTopology, lam_cond: float, *, x_orig=None, al
     same arrays; the gradient the result carries lives in its buffer until the next call.
     Work :func:`prepare_hc_laplacian` ran ahead into it for the same inputs is taken, once."""
     _check_x(x)
-    c = cache
     xd, xo = _hc_inputs(x, x_orig)
-    S = topo.num_surface_vertices
     need = x.requires_grad and torch.is_grad_enabled()
-    if getattr(c, "marks", {}).pop("hc.pass", None) == _hc_key(xd, xo, topo, lam_cond, alpha, beta, need):
-        energy = c.buffer("hc.energy", (S,), x.dtype, x.device)
-        grad_x = c.buffer("hc.grad_x", xd.shape if need else (1, 3), x.dtype, x.device)
-    else:
-        energy, grad_x = _hc_pass(xd, xo, topo, lam_cond, alpha, beta, need, c)
+    done = cache.take_ahead("hc.pass", _hc_key(xd, xo, topo, lam_cond, alpha, beta, need))
+    energy, grad_x = done or _hc_pass(xd, xo, topo, lam_cond, alpha, beta, need, cache)
     value = energy.sum()
     if not need:
         return value
@@ -672,11 +660,11 @@ def prepare_hc_laplacian(x, topo: HCTopology, lam_cond: float, *, x_orig=None, a
     :class:`holowarp.ops._warp.StepCache`), for its next call with the same inputs and
     gradient need to take (see :func:`prepare_tet_energies`, whose thread it shares)."""
     _check_x(x)
-    if not hasattr(cache, "marks"):
+    if not hasattr(cache, "put_ahead"):
         raise TypeError("prepare_hc_laplacian: cache must be a holowarp.ops._warp.StepCache")
     xd, xo = _hc_inputs(x, x_orig)
-    _hc_pass(xd, xo, topo, lam_cond, alpha, beta, need, cache)
-    cache.marks["hc.pass"] = _hc_key(xd, xo, topo, lam_cond, alpha, beta, need)
+    done = _hc_pass(xd, xo, topo, lam_cond, alpha, beta, need, cache)
+    cache.put_ahead("hc.pass", _hc_key(xd, xo, topo, lam_cond, alpha, beta, need), done)
 
 
 def hc_energy(x, topo: HCTopology, target, normal, lam_cond: float) -> torch.Tensor:
