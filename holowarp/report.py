@@ -318,11 +318,11 @@ def _polish_and_improve(model, clean, dataset, config, device, state):
     if snapshot is None or refined is None:  # no bisection, or no §7b to judge it by
         if refined is not None:
             refined["kept"] = True
-        return clean, polish_info, improve_info
+        return clean, polish_info, _refit(model, dataset, config, device, state, improve_info)
     worst = improve_info["after"]["min_dihedral_worst"]
     refined.update(kept=bool(worst >= p.refine_keep_deg), min_dihedral_worst=worst)
     if refined["kept"]:
-        return clean, polish_info, improve_info
+        return clean, polish_info, _refit(model, dataset, config, device, state, improve_info)
     say(f"the bisection at sharp bends left §7b at {worst:.1f}° (under {p.refine_keep_deg:g}°): "
         "polishing and improving again without it", progress=False)
     first = (clean, polish_info, improve_info, model.state_dict())
@@ -334,9 +334,10 @@ def _polish_and_improve(model, clean, dataset, config, device, state):
     if refined["without"] < worst:  # the refined mesh was the better of two misses
         refined["kept"] = True
         model.load_state_dict(first[3])
-        return first[:3]
-    polish_info["refined"] = refined
-    return clean, polish_info, improve_info
+        clean, polish_info, improve_info = first[:3]
+    else:
+        polish_info["refined"] = refined
+    return clean, polish_info, _refit(model, dataset, config, device, state, improve_info)
 
 
 def _touch_up(model, clean, dataset, config, device, state, polish_info, *, improved: bool):
@@ -379,9 +380,8 @@ def _move_vertices(model, mesh, V):
 
 def _improve(model, clean, dataset, config, device, state):
     """The element improvement (method.md §7b) of the cleaned mesh, the surfels following
-    their parent tets and then refitted to the images (``ImproveConfig.refit_steps``; on data
-    without normal maps ``refit_steps_without_maps`` at ``refit_w_normal``);
-    returns (mesh, report section or None when disabled)."""
+    their parent tets (not yet refitted: :func:`_refit`); returns (mesh, report section or
+    None when disabled)."""
     if not config.improve.enabled:
         return clean, None
     from holowarp.stages.improve import improve
@@ -389,10 +389,23 @@ def _improve(model, clean, dataset, config, device, state):
     t0 = time.perf_counter()
     mesh, parent, info = improve(clean, config.improve, device=str(device))
     model.apply_improve(mesh, parent)
+    state.add_time("improve", time.perf_counter() - t0, 0)
+    return mesh, info
+
+
+def _refit(model, dataset, config, device, state, info):
+    """Refit the surfels that §7b moved to the images (``ImproveConfig.refit_steps``; on
+    data without normal maps ``refit_steps_without_maps`` at ``refit_w_normal``), once, on
+    the mesh :func:`_polish_and_improve` keeps: the refit moves no vertex, so it cannot
+    change which of two meshes is kept, and refitting both cost the README's main job 14 s
+    of its 250. Its section goes to ``info["refit"]``; returns ``info``."""
+    if info is None:
+        return None
     from holowarp.stages.topology import refit_appearance
 
+    t0 = time.perf_counter()
     topo, steps = config.improve.refit_settings(config.topology, normal_maps=dataset.normals is not None)
     info["refit"] = refit_appearance(model, dataset, topo, steps, seed=config.seed, device=device)
     info["refit"]["w_normal"] = topo.w_normal
     state.add_time("improve", time.perf_counter() - t0, 0)
-    return mesh, info
+    return info

@@ -409,7 +409,8 @@ def test_the_finish_keeps_the_bisection_only_where_improve_still_reaches_its_tar
                                                                                     without_deg, kept):
     """report._polish_and_improve with the polish and §7b replaced by stand-ins whose worst
     angle is given: the refined mesh stays when §7b reaches 10° on it, else the polish and
-    §7b run again without the bisection and the better of the two meshes is kept."""
+    §7b run again without the bisection and the better of the two meshes is kept. The
+    surfels are refitted once, after the choice, on the kept mesh."""
     import holowarp.report as report
 
     class Model:
@@ -438,7 +439,14 @@ def test_the_finish_keeps_the_bisection_only_where_improve_still_reaches_its_tar
         return f"improved {clean}", {"after": {"min_dihedral_worst": worst}}
 
     monkeypatch.setattr(report, "_polish", polish)
+    refits = []
+
+    def refit(model, dataset, config, device, state, info):
+        refits.append((model.state, info["after"]["min_dihedral_worst"]))
+        return info
+
     monkeypatch.setattr(report, "_improve", improve)
+    monkeypatch.setattr(report, "_refit", refit)
     model, config = Model(), preset("fast")
     mesh, pinfo, iinfo = report._polish_and_improve(model, "cleaned mesh", None, config, "cpu", None)
     ref = pinfo["refined"]
@@ -449,3 +457,4 @@ def test_the_finish_keeps_the_bisection_only_where_improve_still_reaches_its_tar
     assert mesh == ("improved refined mesh" if kept else "improved plain mesh")
     assert model.state == ("refined" if kept else "plain")
     assert iinfo["after"]["min_dihedral_worst"] == (with_deg if kept else without_deg)
+    assert refits == [(model.state, iinfo["after"]["min_dihedral_worst"])]
