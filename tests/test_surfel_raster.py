@@ -347,3 +347,55 @@ def test_threaded_launches_give_the_single_thread_images_and_gradients(rng):
         set_cpu_threads(before)
     for a, b in zip(runs[0][0] + list(runs[0][1]), runs[1][0] + list(runs[1][1])):
         assert torch.equal(a, b)
+
+
+def test_binning_lists_every_contributing_pixel_and_drops_what_thin_splats_miss(rng):
+    """The binning (kernels/surfels.py, step 3) shrinks each (block, surfel) entry to the
+    pixels the splat's cut-off ellipse may reach and leaves out blocks it misses. Oracle: a
+    dense float64 rho = min(u^2 + v^2, 2 |d|^2) of every surfel at every pixel, from the
+    reference's projection. Every pixel a surfel clearly reaches (rho below its cut-off
+    2 ln(255 o)) must find the surfel in its list with a box that holds it; on needle-like,
+    oblique splats the lists must hold far fewer (pixel, surfel) pairs than their boxes."""
+    from holowarp.kernels.surfels import BLOCK_SIZE, NEAR_PLANE, TILE_SIZE
+    from holowarp.ops.surfels import ProjectSurfels, _Binning
+    from holowarp.ops.surfels_ref import project_surfels_ref
+
+    n, W, H = 300, 48, 40
+    means, quats, scales, opac, colors, viewmat, K, _ = random_scene(rng, n, W, H)
+    scales[:, 1] = scales[:, 0] * 0.05  # needles
+    f32 = [t.float() for t in (means, quats, scales, opac, colors, viewmat, K)]
+    with torch.no_grad():
+        proj = ProjectSurfels.apply(*f32[:3], f32[5], f32[6])
+        bins = _Binning(*proj, f32[3], f32[4], W, H, NEAR_PLANE)
+    # Dense float64 oracle on the float32-rounded inputs.
+    Hm, centers, _, _ = project_surfels_ref(*[t.double() for t in f32[:3]], f32[5].double(), f32[6].double())
+    ys, xs = np.mgrid[0:H, 0:W]
+    px = torch.tensor(xs.ravel() + 0.5)[:, None]
+    py = torch.tensor(ys.ravel() + 0.5)[:, None]
+    hx = px[..., None] * Hm[None, :, 2] - Hm[None, :, 0]
+    hy = py[..., None] * Hm[None, :, 2] - Hm[None, :, 1]
+    c = torch.linalg.cross(hx, hy, dim=-1)
+    rho3d = (c[..., 0] ** 2 + c[..., 1] ** 2) / c[..., 2] ** 2
+    rho2d = 2.0 * ((px - centers[None, :, 0]) ** 2 + (py - centers[None, :, 1]) ** 2)
+    rho = torch.minimum(rho3d, rho2d).numpy()  # [pixels, surfels]
+    cut = 2.0 * np.log(255.0 * opac.float().double().numpy())
+    drawn = bins.counts.numpy() > 0
+    clear = (rho < cut[None, :] * (1 - 1e-3)) & drawn[None, :]
+    # What the lists give each pixel.
+    listed = np.zeros_like(clear)
+    start, end, entries, order = (t.numpy() for t in (bins.list_start, bins.list_end, bins.list_ranks, bins.order))
+    blocks_x = TILE_SIZE // BLOCK_SIZE
+    for p, (x, y) in enumerate(zip(xs.ravel(), ys.ravel())):
+        bx, by = x // BLOCK_SIZE, y // BLOCK_SIZE
+        key = ((by // blocks_x) * bins.tiles_x + bx // blocks_x) * blocks_x**2 + (by % blocks_x) * blocks_x + bx % blocks_x
+        e = entries[start[key]:end[key]]
+        lx, ly = x % BLOCK_SIZE, y % BLOCK_SIZE
+        inside = (lx >= (e & 3)) & (lx <= (e >> 2) & 3) & (ly >= (e >> 4) & 3) & (ly <= (e >> 6) & 3)
+        listed[p, order[e[inside] >> 8]] = True
+    assert clear.sum() > 500  # the scene covers pixels
+    missed = clear & ~listed
+    assert not missed.any(), f"{int(missed.sum())} (pixel, surfel) pairs within the cut-off are not listed"
+    boxes = bins.boxes.numpy()
+    in_boxes = int((np.clip(boxes[:, 2] - boxes[:, 0] + 1, 0, None) * np.clip(boxes[:, 3] - boxes[:, 1] + 1, 0, None)).sum())
+    assert listed.sum() < 0.8 * in_boxes, (int(listed.sum()), in_boxes)
+    assert int(end[-1] - start[-1]) > 0  # blocks left out altogether (the last list)

@@ -103,8 +103,10 @@ class _Binning:
         num_keys = self.tiles_x * self.tiles_y * K_.BLOCKS_PER_TILE
         self.boxes = _empty((n, 4), torch.int32, h2)
         self.counts = _empty((n,), torch.int32, h2)
-        self.list_start = _zeros((num_keys,), torch.int32, h2)
-        self.list_end = _zeros((num_keys,), torch.int32, h2)
+        # One more list than blocks: emit_intersections files the blocks a surfel's box
+        # touches but its cut-off ellipse misses under key num_keys, after every real list.
+        self.list_start = _zeros((num_keys + 1,), torch.int32, h2)
+        self.list_end = _zeros((num_keys + 1,), torch.int32, h2)
         self.total = 0
         if n == 0:
             return
@@ -131,25 +133,6 @@ class _Binning:
         self.total = total
         if total == 0:
             return
-        keys = _empty((2 * total,), torch.int32, h2)
-        self.list_ranks = _empty((2 * total,), torch.int32, h2)
-        keys_wp, ranks_wp = to_wp(keys), to_wp(self.list_ranks)
-        wp.launch(
-            K_.emit_intersections,
-            dim=n,
-            inputs=[order_wp, boxes_wp, off_wp, sc_wp, self.tiles_x],
-            outputs=[keys_wp, ranks_wp],
-            device=dev,
-        )
-        # Stable sort on the key only: each list keeps the depth order of emission.
-        wp.utils.radix_sort_pairs(keys_wp, ranks_wp, total, 0, max(1, int(num_keys - 1).bit_length()))
-        wp.launch(
-            K_.block_ranges,
-            dim=total,
-            inputs=[keys_wp, total],
-            outputs=[to_wp(self.list_start), to_wp(self.list_end)],
-            device=dev,
-        )
         self.ranked_splats = wp.empty(n, dtype=K_.splat_record, device=dev)
         wp.launch(
             K_.pack_splats,
@@ -160,6 +143,23 @@ class _Binning:
             outputs=[self.ranked_splats],
             device=dev,
         )  # fmt: skip
+        keys = _empty((2 * total,), torch.int32, h2)
+        self.list_ranks = _empty((2 * total,), torch.int32, h2)
+        keys_wp, ranks_wp = to_wp(keys), to_wp(self.list_ranks)
+        # Surfels write disjoint ranges of the pairs: slices of them run on several CPU threads.
+        ins = [order_wp, boxes_wp, off_wp, sc_wp, self.ranked_splats, self.tiles_x, num_keys]
+        run_chunks(lambda first, cnt: wp.launch(K_.emit_intersections, dim=cnt, inputs=ins + [first],
+                                                outputs=[keys_wp, ranks_wp], device=dev),
+                   thread_chunks(n, dev), kernel=K_.emit_intersections, device=dev)
+        # Stable sort on the key only: each list keeps the depth order of emission.
+        wp.utils.radix_sort_pairs(keys_wp, ranks_wp, total, 0, max(1, int(num_keys).bit_length()))
+        wp.launch(
+            K_.block_ranges,
+            dim=total,
+            inputs=[keys_wp, total],
+            outputs=[to_wp(self.list_start), to_wp(self.list_end)],
+            device=dev,
+        )
 
 
 #: Widths of the per-surfel gradients of the backward kernel: h2, e0, e1, pqd, centers,
