@@ -418,14 +418,15 @@ def emit_intersections(
         inner1 = int(1 << 30)
         outer0 = int(1 << 30)
         outer1 = int(-(1 << 30))
-        for ly in range(ly0, ly1 + 1 if spans else ly0):
-            span = _row_span(r, conic, by * _BLOCK + ly, lim)
-            first[ly] = span[0]
-            last[ly] = span[1]
-            inner0 = wp.max(inner0, span[0])
-            inner1 = wp.min(inner1, span[1])
-            outer0 = wp.min(outer0, span[0])
-            outer1 = wp.max(outer1, span[1])
+        if spans:
+            for ly in range(ly0, ly1 + 1):
+                span = _row_span(r, conic, by * _BLOCK + ly, lim)
+                first[ly] = span[0]
+                last[ly] = span[1]
+                inner0 = wp.max(inner0, span[0])
+                inner1 = wp.min(inner1, span[1])
+                outer0 = wp.min(outer0, span[0])
+                outer1 = wp.max(outer1, span[1])
         for bx in range(b[0] // _BLOCK, b[2] // _BLOCK + 1):
             lx0 = wp.max(b[0] - bx * _BLOCK, 0)
             lx1 = wp.min(b[2] - bx * _BLOCK, _BLOCK - 1)

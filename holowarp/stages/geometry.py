@@ -402,11 +402,11 @@ class GeometryBlock:
                 self.pulled += int((x.data != x_mid).any(dim=1).sum())
         self.reverted = self.reverted + revert_inverting_moves(x.data, x_old, self.tets32, floor=self.floor,
                                                                  incidence=self.incidence, cache=c)
-        out = {"loss": loss, "mask": terms[0], "norm": terms[1], "hc": terms[3] / self.mean_edge**2, "w": terms[4],
-               "inv": terms[5]}
+        logged = {"loss": loss, "mask": terms[0], "norm": terms[1], "hc": terms[3] / self.mean_edge**2, "w": terms[4],
+                  "inv": terms[5]}
         if has_prior:
-            out["prior"] = terms[2]
-        return {**out, "lam": lam, "lam_cond": lam_cond}
+            logged["prior"] = terms[2]
+        return {**logged, "lam": lam, "lam_cond": lam_cond}
 
     def finish(self) -> int:
         """Stop optimising the vertices; returns the number of inverted tets (volume <= 0)."""
