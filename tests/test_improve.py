@@ -411,12 +411,51 @@ def test_caps_are_deleted_when_surface_work_comes_first_and_report_counts_every_
     assert out.num_vertices == mesh.num_vertices - 1  # the caps' apex is gone
     assert out.manifold()["manifold"] and out.genus() == mesh.genus() and np.all(out.signed_volumes() > 0)
     assert info["surface_hausdorff_mean_edges"] <= 0.1
-    for key in ("2-3", "3-2", "4-4", "edge_removal_5+", "boundary_edge_removal", "cap_removal", "cap_vertex_removal"):
+    for key in ("2-3", "3-2", "4-4", "edge_removal_5+", "boundary_edge_removal", "cap_removal", "cap_vertex_removal",
+                "boundary_edge_collapse"):
         assert isinstance(info["flips"][key], int)
     h = info["eta_histogram_after"]
     assert h["bin_edges"] == list(I.ETA_HISTOGRAM_EDGES)
     assert sum(h["counts"]) == out.num_tets and h["below_0.01"] == 0
     json.dumps(info)  # report.json-ready
+
+
+def test_a_short_boundary_edge_is_collapsed_within_the_surface_budget(rng):
+    # A boundary edge split near one end: the tets at the short piece are needles that no
+    # flip mends (a flip keeps every vertex) and, without smoothing, nothing else does.
+    mesh = _split_edge_near_end(box_tetmesh((3, 3, 3)), True, t=float(rng.uniform(0.02, 0.1)))
+    fixed = dict(smooth_passes=0, inside_rounds=0, thin_fraction=None, split_threshold=0.0)
+    kept, _, k_info = I.improve(mesh, I.ImproveConfig(collapse_ratio=0.0, **fixed))
+    out, parent, info = I.improve(mesh, I.ImproveConfig(**fixed))
+    assert k_info["flips"]["boundary_edge_collapse"] == 0 and k_info["after"]["min_dihedral_worst"] < 6.0
+    assert info["flips"]["boundary_edge_collapse"] >= 1
+    assert out.num_vertices == mesh.num_vertices - info["flips"]["boundary_edge_collapse"]
+    E = out.edges()
+    L = I.mean_boundary_edge(mesh)
+    assert np.linalg.norm(out.vertices[E[:, 0]] - out.vertices[E[:, 1]], axis=1).min() > 0.5 * L
+    assert info["after"]["min_dihedral_worst"] > 40.0  # the box's own tets again
+    assert out.topology_signature() == mesh.topology_signature() and np.all(out.signed_volumes() > 0)
+    assert _ref_hausdorff(mesh, out, rng) <= 0.1 * L
+    assert parent.shape == (out.num_tets,) and parent.max() < mesh.num_tets
+
+
+def test_a_collapse_that_would_make_two_tets_one_is_never_a_candidate(rng):
+    # u and v (a short edge, in a thin tet) both see the triangle xyz: merging them would
+    # turn (u, x, y, z) and (v, x, y, z) into one tet twice, which no manifold check sees.
+    s = rng.uniform(0.05, 0.1)
+    V = np.array([[0, 0, s], [0, 0, -s], [-1, 1, 0], [-1, -1, 0], [1.5, 0, 1], [1.5, 1, -0.5], [1.5, -1, -0.5]], float)
+    u, v, a, b, x, y, z = range(7)
+    def candidates(tets):
+        mesh, _ = TetMesh(V, np.array(tets)).oriented()
+        w = I._Work(mesh, I.ImproveConfig(), "cpu")
+        N = len(w.V)
+        ctx = {"q": w.quality(), "bmask": mesh.boundary_mask(), "stars": I._vertex_stars(w.T, N)}
+        cand = I._Candidates()
+        I._collapse_candidates(w, cand, I._EdgeTable(w.T, N, 6), np.inf, ctx)
+        return len(cand.old)
+
+    assert candidates([[u, v, a, b], [u, x, y, z]]) > 0
+    assert candidates([[u, v, a, b], [u, x, y, z], [v, x, y, z]]) == 0
 
 
 def test_red_refinement_splits_every_tet_in_eight_inside_it_and_keeps_the_surface(rng):
@@ -547,6 +586,10 @@ def test_improve_refuses_inverted_tets_and_empty_meshes():
         I.improve(TetMesh(REGULAR, np.zeros((0, 4), int)))
     with pytest.raises(ValueError, match="max_surface_move"):
         I.ImproveConfig(max_surface_move=-1.0)
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="collapse_ratio"):
+            I.ImproveConfig(collapse_ratio=bad)
+    assert I.ImproveConfig(collapse_ratio=0.0).collapse_ratio == 0.0  # an explicit 0 turns it off
 
 
 # ---------------------------------------------------------------------------- command line

@@ -57,6 +57,10 @@ and scaled. The same 252 tets and 128 vertices; this machine's hash was recorded
 and the other machine's dropped, as its run is now unrecorded (``c468dd0c...``). Then §7b's
 ``ImproveConfig.split_threshold`` went from 0.2 to 0.3, which splits more slivers: 261 tets
 and 130 vertices, recorded again (with 0.2 the previous hash holds).
+
+On 2026-12-08 §7b began to collapse short boundary edges (``ImproveConfig.collapse_ratio``),
+which moves vertices on purpose: the same 261 tets and 130 vertices, recorded again (with
+``collapse_ratio`` 0 the previous hash, ``1817f028...``, holds).
 """
 
 from __future__ import annotations
@@ -73,8 +77,8 @@ import trimesh
 #: (tets, vertices) of that mesh, the machine that recorded it and its CPU fingerprint
 #: (``None`` where it was not recorded). See the module docstring.
 RECORDED_HASHES = {
-    "1817f028779c279d86fbdd7d902a87346454d38192a712ac7320589fa45cd212":
-        ((261, 130), "build machine of 2026-12-07, §7b's split_threshold 0.3 (AMD EPYC, AVX-512)",
+    "e501d4d8a1f76c38f80e8210194e33e00355009792888213a79066f247087191":
+        ((261, 130), "build machine of 2026-12-08, §7b's boundary edge collapse (AMD EPYC, AVX-512)",
          "AMD EPYC|avx,avx2,avx512_bf16,avx512f,avx512vl,fma"),
 }
 #: Instruction sets that change how LLVM (Warp's CPU kernels) and torch's kernels round.

@@ -16,9 +16,12 @@ for the surface operations is then only what needs them.
    1..``max_boundary_ring`` tets is removed by retriangulating the fan (its two boundary
    triangles flip to the other diagonal of their quad; a fan of one tet is a *cap*, simply
    deleted), and a tet whose apex is a boundary vertex of valence one (three boundary
-   faces) is deleted with that vertex. These move the surface by the local two-sided
-   Hausdorff distance between the old and new triangles, which must fit the surface budget
-   left there (see below). A cap is deleted only once the tets it would expose are decent
+   faces) is deleted with that vertex, and a boundary edge shorter than ``collapse_ratio``
+   mean boundary edges is collapsed (its ends merge at either end or at its midpoint,
+   whichever leaves the best worst tet; the edge's fan vanishes): a needle under a short
+   boundary edge keeps its short edge through every flip. These move the surface by the
+   local two-sided Hausdorff distance between the old and new triangles, which must fit
+   the surface budget left there (see below). A cap is deleted only once the tets it would expose are decent
    (``boundary_threshold``) or caps themselves no worse than it: a bad interior tet can still
    be fixed from inside, but once on the surface only the surface budget could help it. Changes are vertex-disjoint, and every batch is checked
    (components, genus, shells, manifoldness) before it is kept. Boundary changes go first
@@ -553,8 +556,9 @@ class _Work:
         self.dirty = np.ones(mesh.num_tets, dtype=bool)
         self.mode = QUALITY_MEASURES[cfg.quality]
         self.cfg = cfg
+        self.mean_edge = mean_boundary_edge(mesh)  # m, the input's: the unit of the surface budget
         self.counts = {"2-3": 0, "3-2": 0, "4-4": 0, "edge_removal_5+": 0, "boundary_edge_removal": 0,
-                       "cap_removal": 0, "cap_vertex_removal": 0, "overlap_removal": 0}
+                       "cap_removal": 0, "cap_vertex_removal": 0, "boundary_edge_collapse": 0, "overlap_removal": 0}
         self.splits = {"edge": 0, "face": 0}
         self._mesh = None
         self._q = None
@@ -788,6 +792,103 @@ def _cap_vertex_candidates(w: _Work, cand: _Candidates, bound: float, ctx: dict)
     cand.add(ok, three[:, None], np.zeros((len(three), 0, 4), dtype=np.int64), T[three], 1.0 - q[three], h, 0)
 
 
+def _collapse_candidates(w: _Work, cand: _Candidates, edges: _EdgeTable, bound: float, ctx: dict):
+    """Collapses of short boundary edges (module docstring, step 1): a boundary edge (u, v)
+    shorter than ``collapse_ratio`` mean boundary edges whose open fan holds a tet below
+    ``boundary_threshold`` becomes one new vertex at u, at v or at their midpoint (three
+    candidates): the tets around u and v are replaced by the same tets with both moved
+    there, and the edge's fan vanishes. Appends the positions of the candidates that pass
+    to ``w.V`` (the ones not applied stay unused) and adds them to ``cand``.
+
+    A flip keeps every vertex, so a boundary triangle with one edge far shorter than the
+    others (the polish's slide along a crease leaves some) stays a needle whatever the tets
+    under it: bob's README job (fast, 128²) ended §7b at 8.9° on one such tet, under a
+    0.006 edge where the mean boundary edge is 0.03."""
+    cfg, q, V, T, N = w.cfg, ctx["q"], w.V, w.T, len(w.V)
+    if cfg.collapse_ratio <= 0:
+        return
+    g = np.flatnonzero(edges.boundary & (edges.n <= edges.tets.shape[1]))
+    g = g[np.linalg.norm(V[edges.u[g]] - V[edges.v[g]], axis=1) < cfg.collapse_ratio * w.mean_edge]
+    fan = edges.tets[g]
+    g = g[np.where(fan >= 0, q[np.maximum(fan, 0)], np.inf).min(axis=1) < cfg.boundary_threshold]
+    if len(g) == 0:
+        return
+    u, v = np.tile(edges.u[g], 3), np.tile(edges.v[g], 3)
+    k = len(g)
+    pos = np.concatenate([V[u[:k]], V[v[:k]], 0.5 * (V[u[:k]] + V[v[:k]])])
+    C = len(u)
+    m = N + np.arange(C)  # the merged vertex of each candidate, in the extended positions
+    Vx = np.concatenate([V, pos])
+    offs, ids, _ = ctx["stars"]
+    su, sv = _padded_rows(offs, ids, u), _padded_rows(offs, ids, v)
+    sv = np.where((T[np.maximum(sv, 0)] == u[:, None, None]).any(axis=2), -1, sv)  # the fan: in su already
+    star = np.concatenate([su, sv], axis=1)
+    live = star >= 0
+    old_t = np.where(live[:, :, None], T[np.maximum(star, 0)], -1)  # [C, S, 4]
+    hit = (old_t == u[:, None, None]) | (old_t == v[:, None, None])
+    keep = live & (hit.sum(axis=2) == 1)
+    new = np.where(keep[:, :, None], np.where(hit, m[:, None, None], old_t), -1)
+    qn = np.full(keep.shape, np.inf)
+    qn[keep] = w.kernels.quality(Vx, new[keep], w.mode)
+    q_old = np.where(live, q[np.maximum(star, 0)], np.nan)
+    qold, qnew = np.nanmin(q_old, axis=1), qn.min(axis=1)
+    mean_old = np.nanmean(q_old, axis=1)
+    mean_new = np.where(keep, qn, 0.0).sum(axis=1) / np.maximum(keep.sum(axis=1), 1)
+    prio = qnew - qold
+    ok = keep.any(axis=1) & (prio > cfg.min_gain) & ((qold < cfg.mean_guard) | (mean_new >= mean_old))
+    # Tets (u, x, y, z) and (v, x, y, z) would both become (m, x, y, z): the link condition's
+    # failure, which no manifold check sees when the pair is all there is of them.
+    c, j = np.nonzero(keep)
+    rest = np.sort(np.where(new[c, j] == m[c, None], -1, new[c, j]), axis=1)[:, 1:]  # the three others
+    _, first, count = np.unique(np.column_stack([c, rest]), axis=0, return_index=True, return_counts=True)
+    ok[c[first[count > 1]]] = False
+    touched = old_t.reshape(C, -1)
+    budget = np.where(touched >= 0, w.err[np.maximum(touched, 0)], 0.0).max(axis=1)
+    ok &= budget <= bound
+    # The surface patch: the boundary triangles at u and v before, the same at the merged
+    # vertex after (the two on the edge vanish).
+    bm = ctx["bmask"][np.maximum(star, 0)] & live[:, :, None]  # [C, S, 4]
+    old_f = np.where(bm[..., None], old_t[:, :, TET_FACES], -1).reshape(C, -1, 3)
+    hit_f = (old_f == u[:, None, None]) | (old_f == v[:, None, None])
+    new_f = np.where(hit_f, m[:, None, None], old_f)
+    new_f = np.where((hit_f.sum(axis=2) > 1)[..., None], -1, new_f)
+    old_f, new_f = _leading_rows(old_f), _leading_rows(new_f)  # few of the 4 S rows are boundary faces
+    h = np.zeros(C)
+    i = np.flatnonzero(ok)
+    h[i] = cfg.hausdorff_margin * _patch_hausdorff(Vx[np.maximum(old_f[i], 0)], Vx[np.maximum(new_f[i], 0)],
+                                                   old_f[i, :, 0] >= 0, new_f[i, :, 0] >= 0)
+    ok[i] &= h[i] + budget[i] <= bound
+    if not ok.any():
+        return
+    # Keep the positions of the candidates that passed, renumbered after the current ones.
+    ids_new = np.full(C, -1)
+    ids_new[ok] = N + np.arange(int(ok.sum()))
+    new = np.where(new >= N, ids_new[np.maximum(new - N, 0)], new)
+    w.V = np.concatenate([V, pos[ok]])
+    w.err = np.concatenate([w.err, np.zeros(int(ok.sum()))])
+    w.changed()
+    touched = np.concatenate([touched, ids_new[:, None]], axis=1)
+    cand.add(ok, star, new, touched, prio, h, -1)
+
+
+def _leading_rows(f: np.ndarray) -> np.ndarray:
+    """``f`` (C, A, 3) with each candidate's valid rows (first entry >= 0) moved to the front
+    and the columns no candidate uses dropped."""
+    valid = f[:, :, 0] >= 0
+    order = np.argsort(~valid, axis=1, kind="stable")
+    width = max(int(valid.sum(axis=1).max()), 1) if len(f) else 1
+    return np.take_along_axis(f, order[:, :width, None], axis=1)
+
+
+def _padded_rows(offs: np.ndarray, ids: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """CSR rows as a (len(rows), longest) array, -1 padded."""
+    owner, entry = _gather_csr(offs, ids, rows)
+    size = offs[rows + 1] - offs[rows]
+    out = np.full((len(rows), max(int(size.max()), 1) if len(rows) else 1), -1, dtype=np.int64)
+    out[owner, np.arange(len(owner)) - np.repeat(np.cumsum(size) - size, size)] = entry
+    return out
+
+
 def _boundary_pass(w: _Work, signature: tuple, bound: float) -> int:
     """One batch of boundary edge removals and cap deletions (module docstring, step 1).
     Returns the number applied."""
@@ -795,17 +896,18 @@ def _boundary_pass(w: _Work, signature: tuple, bound: float) -> int:
     mesh = w.mesh()
     bmask = mesh.boundary_mask()
     ctx = {"q": w.quality(), "bnd_keys": _boundary_edge_keys(mesh, N), "adj": mesh.face_adjacency().astype(np.int64),
-           "bmask": bmask, "capped": bmask.sum(axis=1) >= 2}
+           "bmask": bmask, "capped": bmask.sum(axis=1) >= 2, "stars": _vertex_stars(w.T, N)}
     edges = _EdgeTable(w.T, N, w.cfg.max_boundary_ring + 1)
     cand = _Candidates()
     for k in range(1, w.cfg.max_boundary_ring + 1):
         _fan_candidates(w, cand, edges, k, bound, ctx)
     _cap_vertex_candidates(w, cand, bound, ctx)
+    _collapse_candidates(w, cand, edges, bound, ctx)
     if not cand.old:
         return 0
     old, new, vts, prio, h, kind = cand.arrays()
     # Vertex-disjoint: two boundary changes sharing a vertex are never judged apart.
-    take = _select_independent(vts, prio, N)
+    take = _select_independent(vts, prio, len(w.V))  # collapses add vertices
     old, new, vts, h, kind = old[take], new[take], vts[take], h[take], kind[take]
     applied = _apply_checked(w, signature, old, new, vts, np.arange(len(kind)), depth=6)
     if len(applied) == 0:
@@ -818,6 +920,7 @@ def _boundary_pass(w: _Work, signature: tuple, bound: float) -> int:
     w.counts["cap_vertex_removal"] += int((kk == 0).sum())
     w.counts["cap_removal"] += int((kk == 1).sum())
     w.counts["boundary_edge_removal"] += int((kk >= 2).sum())
+    w.counts["boundary_edge_collapse"] += int((kk < 0).sum())
     return int(len(applied))
 
 
@@ -1129,7 +1232,8 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
           it was split from, or, for a flip, the replaced tet that held its centroid);
         - ``info``, the ``report.json -> improve`` section: ``flips`` (counts by type:
           ``2-3``, ``3-2``, ``4-4``, ``edge_removal_5+``, ``boundary_edge_removal``,
-          ``cap_removal``, ``cap_vertex_removal``, ``overlap_removal``: step 5), ``splits``
+          ``cap_removal``, ``cap_vertex_removal``, ``boundary_edge_collapse``,
+          ``overlap_removal``: step 5), ``splits``
           (``edge``, ``face``),
           ``vertices_smoothed``, ``before``/``after`` (tets, vertices, worst and mean
           minimum dihedral in degrees, mean and worst aspect ratio, min and mean quality,
@@ -1161,7 +1265,7 @@ def improve(mesh: TetMesh, config: ImproveConfig = ImproveConfig(), *, device: s
     mesh, _ = mesh.remove_unused_vertices()
     w = _Work(mesh, cfg, device)
     signature = mesh.topology_signature()
-    L = mean_boundary_edge(mesh)
+    L = w.mean_edge
     bound = cfg.max_surface_move * L
     rng = np.random.default_rng(0)
     q0 = w.quality()
