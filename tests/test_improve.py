@@ -449,7 +449,7 @@ def test_a_collapse_that_would_make_two_tets_one_is_never_a_candidate(rng):
         mesh, _ = TetMesh(V, np.array(tets)).oriented()
         w = I._Work(mesh, I.ImproveConfig(), "cpu")
         N = len(w.V)
-        ctx = {"q": w.quality(), "bmask": mesh.boundary_mask(), "stars": I._vertex_stars(w.T, N)}
+        ctx = {"q": w.quality(), "bmask": mesh.boundary_mask()}
         cand = I._Candidates()
         I._collapse_candidates(w, cand, I._EdgeTable(w.T, N, 6), np.inf, ctx)
         return len(cand.old)

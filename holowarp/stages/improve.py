@@ -819,7 +819,7 @@ def _collapse_candidates(w: _Work, cand: _Candidates, edges: _EdgeTable, bound: 
     C = len(u)
     m = N + np.arange(C)  # the merged vertex of each candidate, in the extended positions
     Vx = np.concatenate([V, pos])
-    offs, ids, _ = ctx["stars"]
+    offs, ids, _ = _vertex_stars(T, N)  # only here: most passes have no short edge
     su, sv = _padded_rows(offs, ids, u), _padded_rows(offs, ids, v)
     sv = np.where((T[np.maximum(sv, 0)] == u[:, None, None]).any(axis=2), -1, sv)  # the fan: in su already
     star = np.concatenate([su, sv], axis=1)
@@ -866,7 +866,7 @@ def _collapse_candidates(w: _Work, cand: _Candidates, edges: _EdgeTable, bound: 
     new = np.where(new >= N, ids_new[np.maximum(new - N, 0)], new)
     w.V = np.concatenate([V, pos[ok]])
     w.err = np.concatenate([w.err, np.zeros(int(ok.sum()))])
-    w.changed()
+    w._mesh = None  # unused vertices added; the tets, and so their qualities, are as they were
     touched = np.concatenate([touched, ids_new[:, None]], axis=1)
     cand.add(ok, star, new, touched, prio, h, -1)
 
@@ -896,7 +896,7 @@ def _boundary_pass(w: _Work, signature: tuple, bound: float) -> int:
     mesh = w.mesh()
     bmask = mesh.boundary_mask()
     ctx = {"q": w.quality(), "bnd_keys": _boundary_edge_keys(mesh, N), "adj": mesh.face_adjacency().astype(np.int64),
-           "bmask": bmask, "capped": bmask.sum(axis=1) >= 2, "stars": _vertex_stars(w.T, N)}
+           "bmask": bmask, "capped": bmask.sum(axis=1) >= 2}
     edges = _EdgeTable(w.T, N, w.cfg.max_boundary_ring + 1)
     cand = _Candidates()
     for k in range(1, w.cfg.max_boundary_ring + 1):
